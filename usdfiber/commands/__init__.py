@@ -1,0 +1,1 @@
+"""Sub-commands of the ``usdfiber`` command line (see :mod:`usdfiber.cli`)."""
