@@ -1,0 +1,245 @@
+"""On-disk container of a baked BCSDF table (format version 1).
+
+A table is a NumPy ``.npz`` archive (a zip of ``.npy`` files, readable with ``numpy.load``
+without pickling) holding:
+
+* ``header``: a 1-D ``uint8`` array, the UTF-8 bytes of a JSON object::
+
+      {
+        "format": "usdfiber-bcsdf",          # identifies the container
+        "version": 1,                        # this layout
+        "geometry_key": "<sha256 hex>",      # FiberParams.geometry_key() of the traced fiber
+        "inputs": {...},                     # FiberParams geometry inputs, with "units"
+        "resolution": ...,                   # baker-defined (e.g. bin counts per axis)
+        "photons": ...,                      # photons traced (per direction or total: baker-defined)
+        "error_estimate": ...,               # baker-defined estimate of the table's noise
+        "created": "2026-01-01T00:00:00+00:00",  # ISO 8601, UTC
+        "arrays": {"<name>": {"dtype": "<f4", "shape": [..]}, ...},
+        "checksums": {"<name>": "<sha256 hex of the array's C-order bytes>", ...}
+      }
+
+  Read it with ``json.loads(numpy.load(path)["header"].tobytes().decode("utf-8"))``.
+  Further keys are allowed and kept.
+* one entry per named array. What the arrays mean is defined by the baker, not here.
+
+Writes are atomic: the archive is written to a temporary file in the target's directory,
+flushed and fsynced, then renamed over the target with ``os.replace``; a crash leaves either
+the old file or the new one at the target path, never a partial one.
+
+Reading verifies the container and raises :class:`TableError` whose message says why:
+``missing``, ``not a usdfiber table``, ``truncated or corrupt: ...``,
+``checksum mismatch for array X`` or ``unsupported version N``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+FORMAT = "usdfiber-bcsdf"
+VERSION = 1
+HEADER_ENTRY = "header"
+REQUIRED_HEADER_KEYS = ("geometry_key", "inputs", "resolution", "photons", "error_estimate")
+_ZIP_MAGIC = b"PK\x03\x04"
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class TableError(ValueError):
+    """A table file that cannot be used (or written); the message says why."""
+
+    def __init__(self, path: str | os.PathLike[str], reason: str) -> None:
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{path}: {reason}")
+
+
+def array_checksum(a: np.ndarray) -> str:
+    """sha256 hex digest of an array's bytes in C order."""
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+
+
+def _json_default(o: Any) -> Any:
+    # Bakers naturally hand over NumPy scalars and small arrays.
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serializable")
+
+
+def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
+                arrays: Mapping[str, np.ndarray], *, compress: bool = True) -> dict[str, Any]:
+    """Write a table atomically and return the full header written.
+
+    ``header`` must hold :data:`REQUIRED_HEADER_KEYS`; ``format``, ``version``, ``arrays`` and
+    ``checksums`` are filled in, ``created`` when absent. Array names are identifiers other
+    than ``header``; object arrays are refused.
+    """
+    path = Path(path)
+    missing = [k for k in REQUIRED_HEADER_KEYS if k not in header]
+    if missing:
+        raise TableError(path, f"cannot write: header lacks {', '.join(missing)}")
+    clean: dict[str, np.ndarray] = {}
+    for name, a in arrays.items():
+        if not isinstance(name, str) or not _NAME_RE.match(name) or name == HEADER_ENTRY:
+            raise TableError(path, f"cannot write: invalid array name {name!r}")
+        a = np.asarray(a)
+        if a.dtype.hasobject:
+            raise TableError(path, f"cannot write: array {name} has dtype object")
+        clean[name] = a
+
+    full = dict(header)
+    full["format"] = FORMAT
+    full["version"] = VERSION
+    full.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    full["arrays"] = {n: {"dtype": a.dtype.str, "shape": list(a.shape)} for n, a in clean.items()}
+    full["checksums"] = {n: array_checksum(a) for n, a in clean.items()}
+    try:
+        text = json.dumps(full, sort_keys=True, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise TableError(path, f"cannot write: header is not JSON: {exc}") from exc
+    header_bytes = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        # mkstemp makes 0600 files; a table is shared data: keep the old file's mode or 0644.
+        try:
+            mode = path.stat().st_mode & 0o777
+        except FileNotFoundError:
+            mode = 0o644
+        os.fchmod(fd, mode)
+        with os.fdopen(fd, "wb") as f:
+            save = np.savez_compressed if compress else np.savez
+            save(f, **{HEADER_ENTRY: header_bytes}, **clean)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(directory)
+    return full
+
+
+def _fsync_dir(directory: Path) -> None:
+    # Make the rename itself durable; not every platform can open a directory.
+    try:
+        dfd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
+
+
+def _open(path: Path):
+    if not path.exists():
+        raise TableError(path, "missing")
+    if not path.is_file():
+        raise TableError(path, "not a usdfiber table (not a regular file)")
+    with open(path, "rb") as f:
+        magic = f.read(len(_ZIP_MAGIC))
+    if not magic:
+        raise TableError(path, "truncated or corrupt: empty file")
+    if magic != _ZIP_MAGIC:
+        if _ZIP_MAGIC.startswith(magic):
+            raise TableError(path, f"truncated or corrupt: only {len(magic)} bytes")
+        raise TableError(path, "not a usdfiber table (not an .npz archive)")
+    try:
+        return np.load(path, allow_pickle=False)
+    except Exception as exc:  # zipfile.BadZipFile, EOFError, OSError, ValueError, ...
+        raise TableError(path, f"truncated or corrupt: {exc}") from exc
+
+
+def _read_entry(path: Path, z, name: str) -> np.ndarray:
+    try:
+        return z[name]
+    except Exception as exc:  # bad CRC, zlib errors, short reads, bad .npy headers
+        raise TableError(path, f"truncated or corrupt: cannot read {name}: {exc}") from exc
+
+
+def _header(path: Path, z) -> dict[str, Any]:
+    if HEADER_ENTRY not in z.files:
+        raise TableError(path, "not a usdfiber table (no header entry)")
+    raw = _read_entry(path, z, HEADER_ENTRY)
+    if raw.dtype != np.uint8 or raw.ndim != 1:
+        raise TableError(path, "not a usdfiber table (header is not UTF-8 bytes)")
+    try:
+        header = json.loads(raw.tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TableError(path, f"not a usdfiber table (header is not UTF-8 JSON: {exc})") from exc
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise TableError(path, f"not a usdfiber table (format is not {FORMAT!r})")
+    version = header.get("version")
+    if version != VERSION or isinstance(version, bool):
+        raise TableError(path, f"unsupported version {version} (this usdfiber reads version {VERSION})")
+    if not isinstance(header.get("checksums"), dict) or not isinstance(header.get("arrays"), dict):
+        raise TableError(path, "truncated or corrupt: header lacks checksums or arrays")
+    return header
+
+
+def _arrays(path: Path, z, header: dict[str, Any]) -> dict[str, np.ndarray]:
+    checksums: dict[str, str] = header["checksums"]
+    meta: dict[str, Any] = header["arrays"]
+    listed = set(checksums)
+    present = set(z.files) - {HEADER_ENTRY}
+    if listed - present:
+        name = sorted(listed - present)[0]
+        raise TableError(path, f"truncated or corrupt: array {name} listed in the header is missing")
+    if present - listed:
+        name = sorted(present - listed)[0]
+        raise TableError(path, f"truncated or corrupt: array {name} is not listed in the header")
+    out: dict[str, np.ndarray] = {}
+    for name in sorted(listed):
+        a = _read_entry(path, z, name)
+        m = meta.get(name, {})
+        if m.get("dtype") != a.dtype.str or list(m.get("shape", [])) != list(a.shape):
+            raise TableError(path, f"checksum mismatch for array {name} (dtype/shape differ from the header)")
+        if array_checksum(a) != checksums[name]:
+            raise TableError(path, f"checksum mismatch for array {name}")
+        out[name] = a
+    return out
+
+
+def read_header(path: str | os.PathLike[str], *, verify: bool = False) -> dict[str, Any]:
+    """The header of a table, after checking the container, format and version.
+
+    Cheap: arrays are not read. ``verify=True`` also checks every array's checksum.
+    """
+    p = Path(path)
+    z = _open(p)
+    with z:
+        header = _header(p, z)
+        if verify:
+            _arrays(p, z, header)
+    return header
+
+
+def read_table(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``(header, arrays)`` of a table, with format, version and every checksum verified."""
+    p = Path(path)
+    z = _open(p)
+    with z:
+        header = _header(p, z)
+        arrays = _arrays(p, z, header)
+    return header, arrays
+
+
+__all__ = ["FORMAT", "REQUIRED_HEADER_KEYS", "TableError", "VERSION", "array_checksum",
+           "read_header", "read_table", "write_table"]
