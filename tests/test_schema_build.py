@@ -108,7 +108,7 @@ def test_plugin_path_lets_programs_open_stages_first():
     assert all((Path(p) / "plugInfo.json").is_file() for p in paths.split(os.pathsep))
     res = _py(
         "from pxr import Usd\n"
-        "p = Usd.Stage.CreateInMemory().DefinePrim('/a', 'BasisCurves')\n"
+        "s = Usd.Stage.CreateInMemory(); p = s.DefinePrim('/a', 'BasisCurves')\n"
         "assert p.ApplyAPI('FiberAPI') and p.GetAttribute('fiber:kind').Get() == 'polyester'\n"
         "import usdfiber\n",
         env={"PXR_PLUGINPATH_NAME": paths},

@@ -17,3 +17,6 @@ __all__ = ["SchemaRegistrationError", "plugin_paths", "register_plugins", "__ver
 __version__ = "0.1.0"
 
 register_plugins()
+
+# USD loads the validator plugin by importing it; this makes that import resolvable.
+from . import validation as _validation  # noqa: E402,F401

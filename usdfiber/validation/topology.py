@@ -414,6 +414,10 @@ def transform_problems(prim: Usd.Prim) -> tuple[list[Problem], float]:
     return col.problems(), scale
 
 
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 @dataclass(frozen=True)
 class WidthScale:
     """The width a fiber or yarn curve should have, in metres, and the allowed factor."""
@@ -437,7 +441,9 @@ def expected_width(prim: Usd.Prim, time: Usd.TimeCode,
         radius_attr = prim.GetAttribute("yarn:ply:radius")
         plies = plies_attr.Get(time) if plies_attr else None
         radius_mm = radius_attr.Get(time) if radius_attr else None
-        if plies is None or radius_mm is None or plies < 1 or not (0 < radius_mm < math.inf):
+        # Wrong types and ranges are the value check's to report; here they just opt out.
+        if not (_is_number(plies) and _is_number(radius_mm)) or plies < 1 or not (
+                0 < radius_mm < math.inf):
             return None
         d = nominal_yarn_diameter(int(plies), float(radius_mm) * 1e-3)
         return WidthScale(d, YARN_WIDTH_FACTOR,
@@ -445,7 +451,7 @@ def expected_width(prim: Usd.Prim, time: Usd.TimeCode,
                           f"{radius_mm:g} mm: 2r(1 + 1/sin(pi/plies)))")
     diam_attr = prim.GetAttribute("fiber:diameter")
     diam_um = diam_attr.Get(time) if diam_attr else None
-    if diam_um is None or not (0 < diam_um < math.inf):
+    if not _is_number(diam_um) or not (0 < diam_um < math.inf):
         return None
     return WidthScale(float(diam_um) * 1e-6, FIBER_WIDTH_FACTOR, f"fiber:diameter {diam_um:g} um")
 
