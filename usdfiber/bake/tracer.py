@@ -1,0 +1,652 @@
+"""Photon tracer of the baker: one fiber, one incoming direction, Dr.Jit + Mitsuba (Embree/OptiX).
+
+Conventions (fiber frame): the fiber runs along +z; the cross-section is in the xy plane;
+phi is measured from +x towards +y; sin(theta) = w.z. ``omega_i`` points towards the light,
+so photons travel along ``-omega_i``. Lengths are micrometres.
+
+Photons are launched uniformly over the beam that covers the outer loop's shadow seen from
+``phi_i`` (width ``W(phi_i)``) plus a margin on each side; photons that never touch the fiber
+are not counted, so ``albedo = surviving weight / photons that hit``.
+
+Every boundary is a rough dielectric interface with Beckmann microfacets (alpha = tan(beta),
+Aliaga et al. Sec. 3.1) around the smooth shading normal. A photon that reaches it performs
+the microsurface random walk of Heitz et al. 2016 ("Multiple-scattering microfacet BSDFs with
+the Smith model"; uncorrelated uniform heights): at each event the hit height follows the Smith
+masking, the microfacet normal is drawn from the normals visible from the photon's direction,
+and the exact unpolarized Fresnel factor picks reflection or refraction (total internal
+reflection always reflects). The walk ends when the photon escapes the microsurface, above
+(reflected) or below (transmitted). So a sample that a single microfacet would send to the wrong
+side of the macro surface is neither discarded (energy loss) nor re-sampled (a biased lobe): it
+is the next event of the walk, which conserves energy exactly and keeps the boundary reciprocal.
+The walk is the same as in :mod:`usdfiber.bake.reference_tracer`. ``beta = 0`` is a smooth
+interface: one Fresnel event about the shading normal. Absorption is not simulated: each photon
+carries the path length it travelled inside the material, and any ``sigma_a`` is applied
+afterwards as ``exp(-sigma_a * L)`` (see :mod:`usdfiber.bake.binning`).
+
+Near grazing, the smooth normal may put the incoming photon behind the surface; the flat
+triangle normal is the macro normal of that event. A direction that leaves a boundary on the
+wrong side of the flat triangle (within the small angle between the smooth and the flat
+normal) is mirrored across the triangle's plane. A hit seen from the side opposite to the photon's
+medium (a sliver thinner than float32 resolves, e.g. the tip of a slit lumen) is passed
+through without interaction; a photon in the material that misses everything slipped through
+a crack and is nudged and traced once more. ``TraceResult.extra["leaks"]`` counts both (about
+1e-6 per photon); ``extra["forced"]`` counts walks stopped after 256 microsurface events.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from usdfiber.backend import mitsuba
+from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
+
+__all__ = ["FiberScene", "TraceResult", "prepare", "trace"]
+
+
+@dataclass
+class TraceResult:
+    """Exits of the photons that hit the fiber (numpy, one row per photon that hit).
+
+    ``directions`` are unit exit directions in the fiber frame (towards the viewer), ``path_length``
+    is the distance travelled inside the material (holes excluded), in micrometres; ``cut`` marks
+    photons stopped by ``max_bounces`` or ``max_steps`` (their direction is meaningless and they
+    carry no weight); ``bounces`` counts boundary hits (a microsurface walk is one).
+    """
+
+    directions: np.ndarray          # (M, 3) float32
+    path_length: np.ndarray         # (M,) float32, micrometres
+    cut: np.ndarray                 # (M,) bool
+    bounces: np.ndarray             # (M,) uint32, boundary hits before leaving
+    n_launched: int
+    n_hit: int
+    beam_width: float               # W(phi_i) of the profile, micrometres
+    launch_width: float             # width the photons were spread over (W + both margins)
+    theta_i: float
+    phi_i: float
+    eta: float
+    beta_deg: float
+    seconds: float = 0.0            # wall time of the trace (mesh build excluded)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_cut(self) -> int:
+        """Photons stopped by ``max_bounces`` (or ``max_steps``)."""
+        return int(np.count_nonzero(self.cut))
+
+    @property
+    def measured_width(self) -> float:
+        """Beam width the fiber actually intercepted (launch width x hit fraction), micrometres.
+
+        Equals ``beam_width`` up to noise for an extruded fiber; for a cuticle fiber it is the
+        shadow width averaged along z.
+        """
+        return self.launch_width * self.n_hit / max(self.n_launched, 1)
+
+    def weights(self, sigma_a: float | np.ndarray = 0.0) -> np.ndarray:
+        """Per-photon surviving weight exp(-sigma_a L) (0 for cut photons); sigma_a in 1/um.
+
+        A vector ``sigma_a`` of k channels gives an (M, k) array.
+        """
+        s = np.asarray(sigma_a, dtype=np.float64)
+        L = self.path_length.astype(np.float64)
+        w = np.exp(-np.multiply.outer(L, s))
+        w[self.cut] = 0.0
+        return w
+
+    def albedo(self, sigma_a: float | np.ndarray = 0.0) -> float | np.ndarray:
+        """Surviving weight / photons that hit, for absorption ``sigma_a`` (1/um)."""
+        return self.weights(sigma_a).sum(axis=0) / max(self.n_hit, 1)
+
+
+@dataclass
+class FiberScene:
+    """A fiber segment loaded into Mitsuba, with the Dr.Jit buffers the tracer gathers from."""
+
+    profile: Any
+    mesh: FiberMesh
+    scene: Any
+    faces: Any          # mi.UInt32, flat (F*3)
+    normals: Any        # mi.Float, flat (V*3) shading normals
+    face_normals: Any   # mi.Float, flat (F*3) geometric normals
+    cuticle: tuple[float, float, float] | None
+
+
+def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **mesh_kw: Any) -> FiberScene:
+    """Mesh ``profile`` (see :func:`build_fiber_mesh`) and load it into a Mitsuba scene."""
+    mi = mitsuba()
+    mesh = build_fiber_mesh(profile, cuticle, **mesh_kw)
+    scene = mi.load_dict({"type": "scene", "fiber": mesh.to_mitsuba(mi)})
+    return FiberScene(
+        profile=profile,
+        mesh=mesh,
+        scene=scene,
+        faces=mi.UInt32(mesh.faces.astype(np.uint32).ravel()),
+        normals=mi.Float(mesh.normals.astype(np.float32).ravel()),
+        face_normals=mi.Float(mesh.face_normals.astype(np.float32).ravel()),
+        cuticle=cuticle,
+    )
+
+
+def _projected_width(profile: Any, phi: float) -> float:
+    if hasattr(profile, "projected_width"):
+        return float(np.asarray(profile.projected_width(phi)).reshape(-1)[0])
+    lo, hi = profile_bounds(profile, phi)
+    return hi - lo
+
+
+def _seed_mix(seed: int) -> int:
+    # splitmix64 finaliser: distinct seeds give unrelated PCG streams.
+    z = (int(seed) * 0x9E3779B97F4A7C15 + 0x632BE59BD9B4E019) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return z ^ (z >> 31)
+
+
+_INV_SQRT_PI = float(1.0 / np.sqrt(np.pi))
+_MAX_WALK = 256          # microsurface events per boundary before a photon is forced out
+_NEWTON = 48             # bracketed Newton steps of the below-horizon slope inversion (float64)
+
+
+def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
+    """Smith Lambda of an isotropic Beckmann surface for a direction of local cosine ``wz``.
+
+    Lambda = (erf(a) - 1) / 2 + exp(-a^2) / (2 a sqrt(pi)), a = cot(theta) / alpha; the same
+    expression gives Lambda(-w) = -1 - Lambda(w) for downward directions.
+    """
+    sin_t = dr.sqrt(dr.maximum(1.0 - wz * wz, 0.0))
+    vertical = sin_t < 1e-7
+    a = wz / dr.select(vertical, 1.0, sin_t) / alpha
+    a = dr.select(dr.abs(a) < 1e-12, dr.copysign(1e-12, wz), a)
+    lam = 0.5 * (dr.erf(a) - 1.0) + (0.5 * _INV_SQRT_PI) * dr.exp(-a * a) / a
+    return F(dr.select(vertical, dr.select(wz > 0.0, 0.0, -1.0), lam))
+
+
+def _height_step(dr: Any, F: Any, wr: Any, hr: Any, u: Any, alpha: Any) -> tuple[Any, Any]:
+    """One Smith height step of a microsurface walk (Heitz et al. 2016), uniform heights.
+
+    ``wr``: travel direction in the (mirrored) local frame, ``hr`` the height in [-1, 1]. An
+    upward ray escapes with probability G1 = C1(h)^Lambda, C1(h) = (h + 1) / 2; otherwise (and
+    always for a downward ray) the next hit is where C1(h') = C1(h) / (1 - u)^(1 / Lambda).
+    Returns (leave, new height).
+    """
+    lam = _beckmann_lambda(dr, F, wr.z, alpha)
+    c1 = dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
+    up = wr.z > 0.0
+    g1 = dr.select(up & (c1 > 0.0), dr.exp(lam * dr.log(dr.maximum(c1, 1e-30))), 0.0)
+    lam_s = dr.select(lam == 0.0, -1.0, lam)
+    c1n = c1 * dr.exp(-dr.log(dr.maximum(1.0 - u, 1e-30)) / lam_s)
+    c1n = dr.select(wr.z < -0.9999, u * c1, c1n)
+    hn = dr.clip(2.0 * dr.minimum(c1n, 1.0) - 1.0, -1.0, 1.0)
+    hn = dr.select(dr.abs(wr.z) < 1e-4, hr, hn)
+    leave = (up & (u > 1.0 - g1)) | (wr.z > 0.9999)
+    return leave, F(hn)
+
+
+def _vndf_below(mi: Any, dr: Any, wi: Any, u1: Any, u2: Any, alpha: Any) -> Any:
+    """Beckmann normal visible from ``wi`` for any ``wi`` (local frame, z = macro normal).
+
+    Heitz & d'Eon 2014: stretch to alpha = 1, invert the CDF of the visible slope
+    cot/2 (1 + erf x) + exp(-x^2) / (2 sqrt(pi)) on x < cot by bracketed Newton steps, draw the
+    other slope from a Gaussian, rotate to wi's azimuth and unstretch. float64 because below
+    the horizon the CDF is a far Gaussian tail.
+    """
+    D = mi.Float64
+    a = D(alpha)
+    wx, wy, wz = a * D(wi.x), a * D(wi.y), D(wi.z)
+    nrm = dr.sqrt(wx * wx + wy * wy + wz * wz)
+    cos_t = dr.clip(wz / nrm, -1.0, 1.0)
+    sin_t = dr.sqrt(dr.maximum(1.0 - cos_t * cos_t, 0.0))
+    has_phi = sin_t > 1e-12
+    cos_p = dr.select(has_phi, wx / nrm / dr.select(has_phi, sin_t, 1.0), 1.0)
+    sin_p = dr.select(has_phi, wy / nrm / dr.select(has_phi, sin_t, 1.0), 0.0)
+    cot = dr.clip(cos_t / dr.maximum(sin_t, 1e-300), -1e12, 1e12)
+
+    def cdf(x):
+        return 0.5 * cot * (1.0 + dr.erf(x)) + (0.5 * _INV_SQRT_PI) * dr.exp(-x * x)
+
+    hi = dr.minimum(cot, 9.0)
+    lo = dr.minimum(-9.0, cot - 4.0)
+    uu = D(u1)
+    target = uu * cdf(hi)
+    x = dr.clip(dr.erfinv(dr.clip(2.0 * uu - 1.0, -1.0 + 1e-15, 1.0 - 1e-15)), lo, hi)
+    for _ in range(_NEWTON):
+        gx = cdf(x) - target
+        lo = dr.select(gx < 0.0, x, lo)
+        hi = dr.select(gx > 0.0, x, hi)
+        dg = (cot - x) * dr.exp(-x * x) * _INV_SQRT_PI
+        xn = x - gx / dg
+        bad = ~dr.isfinite(xn) | (xn <= lo) | (xn >= hi)
+        x = dr.select(bad, 0.5 * (lo + hi), xn)
+    y = dr.erfinv(dr.clip(2.0 * D(u2) - 1.0, -1.0 + 1e-15, 1.0 - 1e-15))
+    sx = a * (cos_p * x - sin_p * y)
+    sy = a * (sin_p * x + cos_p * y)
+    inv = 1.0 / dr.sqrt(sx * sx + sy * sy + 1.0)
+    return mi.Vector3f(mi.Float(-sx * inv), mi.Float(-sy * inv), mi.Float(inv))
+
+
+def _gather_state(mi: Any, dr: Any, s: dict, idx: Any) -> dict:
+    """The lanes ``idx`` of a loop state (PCG32 included)."""
+    out = {}
+    for k, v in s.items():
+        if isinstance(v, mi.PCG32):
+            r = mi.PCG32(v)
+            r.state = dr.gather(type(v.state), v.state, idx)
+            r.inc = dr.gather(type(v.inc), v.inc, idx)
+            out[k] = r
+        else:
+            out[k] = dr.gather(type(v), v, idx)
+    return out
+
+
+def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: float, eta: float,
+                 alpha: float, max_bounces: int, max_steps: int, seed: int, lo: float, width: float,
+                 mode: str, phase_steps: int = 8) -> dict:
+    """Trace ``n`` photons (global indices first..first+n-1).
+
+    Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces`` and the counters
+    ``leaks`` and ``forced``. The loop runs in phases of ``phase_steps`` iterations; between
+    phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
+    running until its slowest photon is done), and the rare microfacet samples seen from below
+    the macro surface are drawn by the exact float64 inversion on just those lanes.
+    """
+    mi = mitsuba()
+    import drjit as dr
+
+    F, U, B, V3 = mi.Float, mi.UInt32, mi.Bool, mi.Vector3f
+    mesh = fs.mesh
+    z_inv = mesh.z_invariant
+    rough = alpha > 0.0
+    scale = max(mesh.bound_radius, mesh.z_period if not z_inv else 0.0, 1.0)
+    eps = float(scale * 2.0**-16)              # ~ 100 float32 ulps of the largest coordinate
+    rb = float(mesh.bound_radius)
+    zp = float(mesh.z_period)
+
+    # Opaque scalars: the kernel is compiled once and reused for every direction and material.
+    eta_o = dr.opaque(F, float(eta))
+    inv_eta_o = dr.opaque(F, 1.0 / float(eta))
+    alpha_o = dr.opaque(F, float(max(alpha, 1e-4)))
+    cti, sti = float(np.cos(theta_i)), float(np.sin(theta_i))
+    cpi, spi = float(np.cos(phi_i)), float(np.sin(phi_i))
+    d0 = [dr.opaque(F, -cti * cpi), dr.opaque(F, -cti * spi), dr.opaque(F, -sti)]
+    ux, uy = dr.opaque(F, cpi), dr.opaque(F, spi)
+    lo_o, w_o = dr.opaque(F, lo), dr.opaque(F, width)
+    rb_o, zp_o, eps_o = dr.opaque(F, rb), dr.opaque(F, zp), dr.opaque(F, eps)
+    zs_o = dr.opaque(F, 0.8 * zp)             # extruded: spread of the tracing planes
+    maxb, maxs = dr.opaque(U, max_bounces), dr.opaque(U, max_steps)
+    maxw = dr.opaque(U, _MAX_WALK)
+    scene, faces, vnorm, fnorm = fs.scene, fs.faces, fs.normals, fs.face_normals
+    distr = mi.MicrofacetDistribution(mi.MicrofacetType.Beckmann, alpha_o, True) if rough else None
+
+    mix = _seed_mix(seed)
+    rng = mi.PCG32(size=n, initstate=mi.UInt64(mix + first), initseq=mi.UInt64((mix >> 1) + first))
+
+    # Launch: offset h along u_perp = (-sin phi, cos phi) over [lo, lo + width].
+    h0 = lo_o + w_o * rng.next_float32()
+    if z_inv:
+        s0 = rb_o * 1.01 + eps_o
+        z0 = F(0.0)
+    else:
+        s0 = dr.sqrt(dr.maximum(rb_o * rb_o - h0 * h0, 0.0)) + eps_o
+        z0 = rng.next_float32() * zp_o
+    st = {
+        "idx": dr.arange(U, n),
+        "p": V3(-h0 * uy + s0 * ux, h0 * ux + s0 * uy, z0),
+        "d": V3(d0[0], d0[1], d0[2]),
+        "L": dr.zeros(F, n), "seg": dr.zeros(F, n),
+        "active": dr.full(B, True, n), "hit_any": dr.full(B, False, n), "cut": dr.full(B, False, n),
+        "bounces": dr.zeros(U, n), "steps": dr.zeros(U, n),
+        # Boundary state: in a microsurface walk, medium at its start, side, height, normals.
+        "walking": dr.full(B, False, n), "inside": dr.full(B, False, n), "above": dr.full(B, True, n),
+        "h": dr.zeros(F, n), "nm": dr.zeros(V3, n), "ngs": dr.zeros(V3, n), "wsteps": dr.zeros(U, n),
+        # need_m: the next microfacet normal is seen from below the macro surface and is drawn
+        # between phases (mq holds its two random numbers); has_m: mq holds that normal.
+        "need_m": dr.full(B, False, n), "has_m": dr.full(B, False, n), "mq": dr.zeros(V3, n),
+        "leaks": dr.zeros(U, n), "forced": dr.zeros(U, n), "retried": dr.full(B, False, n),
+        "rng": rng,
+    }
+    if not rough:
+        for k in ("h", "wsteps", "need_m", "has_m", "mq", "forced"):
+            del st[k]
+
+    def finish(s: dict, fin: Any) -> None:
+        """End the boundary event of lanes ``fin``: set the medium, reconcile with the facet, offset."""
+        above = s["above"]
+        ngs = s["ngs"]
+        d = s["d"]
+        dg = dr.dot(d, ngs)
+        # Reflected light must leave on the incident side of the flat triangle, transmitted light
+        # on the other; a direction within the small angle between the smooth and the flat
+        # normal (or a grazing microsurface exit) that disagrees is mirrored across the facet.
+        wrong = dr.select(above, dg <= 0.0, dg >= 0.0)
+        d = dr.select(fin & wrong, V3(dr.normalize(d - ngs * (2.0 * dg))), d)
+        side = dr.select(above, 1.0, -1.0)
+        s["d"] = d
+        s["p"] = dr.select(fin, V3(dr.fma(ngs, side * eps_o, s["p"])), s["p"])
+        s["inside"] = dr.select(fin & ~above, ~s["inside"], s["inside"])
+        s["walking"] = s["walking"] & ~fin
+
+    def fresnel_event(wi: Any, m: Any, into_mat: Any, u: Any) -> tuple[Any, Any]:
+        """Reflect or refract ``wi`` (pointing away from the surface) about ``m``; Fresnel decides."""
+        cos_i = dr.clip(dr.dot(wi, m), 0.0, 1.0)
+        rel = dr.select(into_mat, eta_o, inv_eta_o)
+        F_r, cos_t, _, eta_ti = mi.fresnel(cos_i, rel)
+        refl = u < F_r
+        wo_r = m * (2.0 * cos_i) - wi
+        wo_t = m * dr.fma(cos_i, eta_ti, cos_t) - wi * eta_ti
+        return V3(dr.normalize(dr.select(refl, wo_r, wo_t))), refl
+
+    def local_wi(s: dict) -> tuple[Any, Any, Any]:
+        """Frame of the macro normal, side sign, and wi mirrored so that the photon is above."""
+        frame = mi.Frame3f(s["nm"])
+        sg = dr.select(s["above"], 1.0, -1.0)
+        return frame, sg, -(V3(frame.to_local(s["d"])) * sg)
+
+    def cond(s: dict) -> Any:
+        c = s["active"] & (s["steps"] < s_lim)
+        return c & ~s["need_m"] if rough else c
+
+    def body(s: dict) -> tuple[dict]:
+        s = dict(s)
+        rng = s["rng"]
+        active = s["active"]
+
+        # 1. Walks in progress: does the photon leave the microsurface now? (A walk resuming with
+        #    a normal drawn between phases already did this step.)
+        if rough:
+            test = s["walking"] & ~s["has_m"]
+            frame, sg, wi = local_wi(s)
+            leave, hn = _height_step(dr, F, -wi, s["h"] * sg, rng.next_float32(), alpha_o)
+            s["h"] = dr.select(test, hn * sg, s["h"])
+            forced = test & ~leave & (s["wsteps"] >= maxw)
+            s["forced"] = U(s["forced"] + dr.select(forced, 1, 0))
+            # A walk that is forced out leaves along its current direction, on the side it points to.
+            s["above"] = dr.select(forced, dr.dot(s["d"], s["nm"]) > 0.0, s["above"])
+            finish(s, test & (leave | forced))
+            cont = s["walking"]                        # still walking: scatter again below
+        p, d, inside = s["p"], s["d"], s["inside"]
+
+        # 2. Trace the photons that are between boundaries.
+        trace_m = active & ~s["walking"]
+        retried = s["retried"]
+        if z_inv:
+            # z-invariant geometry: intersect with the horizontal direction and convert the
+            # distance to 3D; no wrapping, whatever theta is.
+            lxy = dr.sqrt(dr.fma(d.x, d.x, d.y * d.y))
+            lxy_s = dr.maximum(lxy, 1e-30)
+            fwd = V3(d.x / lxy_s, d.y / lxy_s, 0.0)
+            # A random plane z per step: a ray that slips through a crack between two triangles
+            # (float32 edge tests) is retried on other triangles instead of leaking.
+            zr = (rng.next_float32() - 0.5) * zs_o
+            pi = scene.ray_intersect_preliminary(mi.Ray3f(mi.Point3f(p.x, p.y, zr), fwd),
+                                                 coherent=False, active=trace_m)
+            hit = trace_m & pi.is_valid()
+            t2 = dr.select(hit, pi.t, 0.0)
+            p_hit = V3(dr.fma(fwd.x, t2, p.x), dr.fma(fwd.y, t2, p.y), 0.0)
+            miss = trace_m & ~hit
+            seg = F(s["seg"] + dr.select(hit, t2 / lxy_s, 0.0))
+            leak = miss & inside & ~retried
+            escape = miss & ~leak
+        else:
+            # Periodic slab [0, zp): stop the ray at the slab face it would cross and wrap it.
+            tz = dr.select(d.z > 0, (zp_o - p.z) / d.z, dr.select(d.z < 0, -p.z / d.z, dr.inf))
+            tz = dr.maximum(tz, 0.0)
+            ray = mi.Ray3f(mi.Point3f(p), d)
+            ray.maxt = F(tz)
+            fwd = d
+            pi = scene.ray_intersect_preliminary(ray, coherent=False, active=trace_m)
+            hit = trace_m & pi.is_valid() & (pi.t < tz)
+            t3 = dr.select(hit, pi.t, 0.0)
+            p_hit = V3(dr.fma(d, t3, p))
+            miss = trace_m & ~hit
+            tz_s = dr.select(dr.isfinite(tz), tz, 0.0)
+            p_end = dr.fma(d, tz_s, p)
+            # Outside the bounding cylinder and moving away from it: nothing more can be hit.
+            outside = (dr.fma(p_end.x, p_end.x, p_end.y * p_end.y) >= rb_o * rb_o) & (
+                dr.fma(p_end.x, d.x, p_end.y * d.y) >= 0.0)
+            gone = miss & (outside | ~dr.isfinite(tz))
+            leak = gone & inside & ~retried
+            escape = gone & ~leak
+            wrap = miss & ~gone
+            seg = F(s["seg"] + dr.select(hit, t3, dr.select(wrap, tz_s, 0.0)))
+            p = dr.select(wrap, V3(p_end.x, p_end.y, dr.select(d.z > 0, 0.0, zp_o)), p)
+
+        # A photon in the material cannot leave without crossing the boundary: it slipped
+        # through a crack. Nudge it sideways by a few ulps and trace once more; if it misses
+        # again, the medium flag was wrong (an offset past a thin edge) and it really escapes.
+        jit = (rng.next_float32() - 0.5) * eps_o
+        p = dr.select(leak, V3(p.x - d.y * jit, p.y + d.x * jit, p.z), p)
+        leaks = U(s["leaks"] + dr.select(leak, 1, 0))
+        s["retried"] = B(leak)
+
+        # Normals at the hit: interpolated smooth normal and flat triangle normal.
+        prim = pi.prim_index
+        f0 = dr.gather(U, faces, prim * 3, hit)
+        f1 = dr.gather(U, faces, prim * 3 + 1, hit)
+        f2 = dr.gather(U, faces, prim * 3 + 2, hit)
+        b1, b2 = pi.prim_uv.x, pi.prim_uv.y
+        b0 = 1.0 - b1 - b2
+        ns = V3(dr.normalize(dr.gather(V3, vnorm, f0, hit) * b0 + dr.gather(V3, vnorm, f1, hit) * b1
+                             + dr.gather(V3, vnorm, f2, hit) * b2))
+        ng = dr.gather(V3, fnorm, prim, hit)
+
+        # A hit from the side opposite to the photon's medium means it crossed a feature thinner
+        # than float32 can resolve (the tip of a slit lumen, where both walls fall within a few
+        # ulps), or an offset carried it past such a feature. Either way it passes through
+        # without interacting, which restores agreement between medium and geometry.
+        mism = hit & ((dr.dot(d, ng) > 0.0) ^ inside)
+        leaks = U(leaks + dr.select(mism, 1, 0))
+        p = dr.select(mism, V3(dr.fma(fwd, eps_o, p_hit)), p)
+        hit = hit & ~mism
+        s["L"] = F(s["L"] + dr.select(hit & inside, seg, 0.0))
+        s["seg"] = dr.select(hit, 0.0, seg)
+        s["leaks"] = leaks
+        s["hit_any"] = s["hit_any"] | hit
+
+        over = hit & (s["bounces"] >= maxb)
+        s["cut"] = s["cut"] | over
+        hit = hit & ~over
+
+        # 3. New boundary events: normals on the photon's side; near grazing the smooth normal can
+        # face away from the photon, the flat one is used there.
+        sgn = dr.select(inside, -1.0, 1.0)
+        ngs = ng * sgn
+        nss = ns * sgn
+        nm = dr.select(dr.dot(-d, nss) > 1e-6, nss, ngs)
+        s["p"] = dr.select(hit, p_hit, p)
+        s["ngs"] = dr.select(hit, ngs, s["ngs"])
+        s["nm"] = dr.select(hit, nm, s["nm"])
+        s["above"] = s["above"] | hit
+        s["bounces"] = U(s["bounces"] + dr.select(hit, 1, 0))
+        s["walking"] = s["walking"] | hit
+        if rough:
+            s["wsteps"] = dr.select(hit, 0, s["wsteps"])
+            # The walk starts above every microfacet; the first hit height follows the masking.
+            frame, sg, wi = local_wi(s)
+            _, hn = _height_step(dr, F, -wi, F(1.0), rng.next_float32(), alpha_o)
+            s["h"] = dr.select(hit, hn, s["h"])
+            # 4. One microfacet event for new and continuing walks.
+            sc = hit | cont
+            u1, u2, u3 = rng.next_float32(), rng.next_float32(), rng.next_float32()
+            below = sc & ~s["has_m"] & (wi.z < 1e-3)
+            m_fast, _ = distr.sample(wi, mi.Point2f(u1, u2))
+            m = dr.select(s["has_m"], s["mq"], V3(m_fast))
+            wo, refl = fresnel_event(wi, m, s["inside"] ^ s["above"], u3)
+            go = sc & ~below
+            s["d"] = dr.select(go, V3(frame.to_world(wo * sg)), s["d"])
+            s["above"] = dr.select(go & ~refl, ~s["above"], s["above"])
+            s["wsteps"] = U(s["wsteps"] + dr.select(go, 1, 0))
+            s["has_m"] = s["has_m"] & ~go
+            s["need_m"] = below
+            s["mq"] = dr.select(below, V3(u1, u2, 0.0), s["mq"])
+        else:
+            # Smooth boundary: one Fresnel event about the macro normal, in world space.
+            wo, refl = fresnel_event(-d, nm, ~inside, rng.next_float32())
+            s["d"] = dr.select(hit, wo, s["d"])
+            s["above"] = dr.select(hit, refl, s["above"])
+            finish(s, hit)
+
+        s["steps"] = U(s["steps"] + 1)
+        stuck = active & ~escape & ~over & (s["steps"] >= maxs)
+        s["cut"] = s["cut"] | stuck
+        s["active"] = active & ~escape & ~over & ~stuck
+        if not z_inv:
+            # Keep offset points inside the periodic slab.
+            q = s["p"]
+            s["p"] = V3(q.x, q.y, dr.select(q.z < 0.0, q.z + zp_o, dr.select(q.z > zp_o, q.z - zp_o, q.z)))
+        s["rng"] = rng
+        return (s,)
+
+    if mode not in ("symbolic", "wavefront"):
+        raise ValueError(f"unknown loop mode {mode!r}")
+    out_d = dr.zeros(V3, n)
+    out_L = dr.zeros(F, n)
+    out_hit = dr.full(B, False, n)
+    out_cut = dr.full(B, False, n)
+    out_b = dr.zeros(U, n)
+    counters = {"leaks": 0, "forced": 0}
+    limit = 0
+    while True:
+        limit += int(phase_steps)
+        s_lim = dr.opaque(U, limit)
+        if mode == "symbolic":
+            (st,) = dr.while_loop((st,), cond, body, mode="symbolic", label="photon")
+        else:
+            (st,) = dr.while_loop((st,), cond, body, mode="evaluated",
+                                  compress=dr.width(st["active"]) > 1, label="photon")
+        dr.eval(st)                 # one launch for every output of the loop
+        if rough:
+            # Microfacet normals seen from below the macro surface: exact, on just those lanes.
+            need = dr.compress(st["need_m"])
+            if len(need) > 0:
+                sub = _gather_state(mi, dr, {k: st[k] for k in ("nm", "d", "above", "mq")}, need)
+                _, _, wi = local_wi(sub)
+                m = _vndf_below(mi, dr, wi, sub["mq"].x, sub["mq"].y, alpha_o)
+                dr.scatter(st["mq"], m, need)
+                dr.scatter(st["has_m"], True, need)
+                dr.scatter(st["need_m"], False, need)
+                dr.eval(st)
+        act = st["active"]
+        n_act = int(dr.count(act)[0])
+        size = dr.width(act)
+        if n_act == 0 or n_act < size // 2:
+            # Write every lane's current outcome (finished lanes are final), then keep the rest.
+            done = ~act
+            dr.scatter(out_d, st["d"], st["idx"])
+            dr.scatter(out_L, st["L"], st["idx"])
+            dr.scatter(out_hit, st["hit_any"], st["idx"])
+            dr.scatter(out_cut, st["cut"], st["idx"])
+            dr.scatter(out_b, st["bounces"], st["idx"])
+            for k in counters:
+                if k in st:
+                    counters[k] += int(dr.sum(dr.select(done, st[k], 0))[0])
+            if n_act == 0:
+                break
+            st = _gather_state(mi, dr, st, dr.compress(act))
+            dr.eval(out_d, out_L, out_hit, out_cut, out_b, st)
+    dr.eval(out_d, out_L, out_hit, out_cut, out_b)
+    dn = np.asarray(out_d.numpy())
+    return {
+        "d": dn.T if dn.ndim == 2 and dn.shape[0] == 3 and dn.shape[1] == n else dn,
+        "L": np.asarray(out_L.numpy()),
+        "hit_any": np.asarray(out_hit.numpy()).astype(bool),
+        "cut": np.asarray(out_cut.numpy()).astype(bool),
+        "bounces": np.asarray(out_b.numpy()),
+        **counters,
+    }
+
+
+def trace(
+    profile: Any,
+    theta_i: float,
+    phi_i: float,
+    n_photons: int,
+    *,
+    eta: float,
+    beta_deg: float,
+    max_bounces: int = 256,
+    seed: int = 0,
+    cuticle: tuple[float, float, float] | None = None,
+    batch: int = 1 << 21,
+    mode: str = "symbolic",
+    max_steps: int | None = None,
+) -> TraceResult:
+    """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
+
+    ``profile`` is a :class:`~usdfiber.bake.profiles.Profile` or a :class:`FiberScene` from
+    :func:`prepare` (reuse it across directions to skip meshing). ``eta`` is the fiber's
+    refractive index (air outside and in holes), ``beta_deg`` the roughness angle
+    (Beckmann alpha = tan(beta)), ``cuticle=(tilt_deg, height_um, spacing_um)`` adds wool
+    scales. Photons are traced ``batch`` at a time. ``mode="symbolic"`` (default) compiles the
+    whole random walk into one kernel, run in phases of 8 iterations with finished photons
+    compacted away in between; ``mode="wavefront"`` launches one kernel per iteration and
+    compacts after each (1.5x slower on 2 CPU cores; may differ on a GPU). Both give identical
+    photons for a given ``seed``, whatever ``batch`` is. ``max_steps`` bounds loop iterations
+    including periodic wraps (cuticle fibers at grazing angles); photons stopped by it or by
+    ``max_bounces`` are reported as cut.
+    """
+    import time
+
+    mi = mitsuba()
+    import drjit as dr
+
+    fs = profile if isinstance(profile, FiberScene) else prepare(profile, cuticle)
+    if cuticle is not None and fs.cuticle != tuple(cuticle):
+        raise ValueError("the prepared FiberScene was built with a different cuticle")
+    theta_i, phi_i = float(theta_i), float(phi_i)
+    if not eta > 0.0:
+        raise ValueError("eta must be > 0")
+    if int(n_photons) <= 0:
+        raise ValueError("n_photons must be > 0")
+    if not 0.0 <= beta_deg < 90.0:
+        raise ValueError("beta_deg must be in [0, 90)")
+    lo, hi = profile_bounds(fs.profile, phi_i)
+    W = _projected_width(fs.profile, phi_i)
+    # Margin: the polygon's shadow may differ slightly from W, and scales stick out of the loop.
+    extra = fs.cuticle[1] if fs.cuticle is not None else 0.0
+    margin = 0.01 * W + extra + 1e-3
+    lo_l, width = lo - margin, (hi - lo) + 2.0 * margin
+    alpha = float(np.tan(np.radians(beta_deg))) if beta_deg > 0.0 else 0.0
+    if max_steps is None:
+        # A safety net only: boundary hits, microsurface events (256 per hit) and z-wraps have
+        # their own limits; photons in long walks cost little once the others are compacted away.
+        max_steps = 1 << 17
+
+    t0 = time.perf_counter()
+    dirs, lens, cuts, bnc = [], [], [], []
+    n_hit = 0
+    n_leaks = 0
+    n_forced = 0
+    for first in range(0, int(n_photons), int(batch)):
+        n = min(int(batch), int(n_photons) - first)
+        out = _trace_batch(
+            fs, n, first, theta_i=theta_i, phi_i=phi_i, eta=float(eta), alpha=alpha,
+            max_bounces=int(max_bounces), max_steps=int(max_steps), seed=int(seed),
+            lo=lo_l, width=width, mode=mode)
+        hit = out["hit_any"]
+        dirs.append(out["d"][hit])
+        lens.append(out["L"][hit])
+        cuts.append(out["cut"][hit])
+        bnc.append(out["bounces"][hit])
+        n_hit += int(hit.sum())
+        n_leaks += out["leaks"]
+        n_forced += out["forced"]
+    dr.sync_thread()
+    seconds = time.perf_counter() - t0
+    return TraceResult(
+        directions=np.ascontiguousarray(np.concatenate(dirs), dtype=np.float32),
+        path_length=np.concatenate(lens).astype(np.float32),
+        cut=np.concatenate(cuts),
+        bounces=np.concatenate(bnc).astype(np.uint32),
+        n_launched=int(n_photons),
+        n_hit=n_hit,
+        beam_width=W,
+        launch_width=width,
+        theta_i=theta_i,
+        phi_i=phi_i,
+        eta=float(eta),
+        beta_deg=float(beta_deg),
+        seconds=seconds,
+        extra={"leaks": n_leaks, "forced": n_forced},
+    )
