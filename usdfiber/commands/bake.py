@@ -1,0 +1,275 @@
+"""``usdfiber bake [STAGE...] [--preset NAME] [--params FILE.json] [options]``: bake BCSDF tables.
+
+Bakes exactly the tables the inputs need, into the table cache: one per distinct
+(traced geometry, cross-section variant). Prims that differ only in dye, depth of shade or
+diameter share a table (those recolour it), as do curves inheriting one class and yarns
+made of the same fiber. Tables already cached are reused; an interrupted bake resumes
+where it stopped.
+
+Inputs: USD stages; ``--preset NAME`` for a fiber preset (``usdfiber presets``);
+``--params FILE.json`` for a fiber described by a JSON object: an optional ``"preset"`` to
+start from, FiberAPI values by Python name or attribute name (``"diameter": 18``,
+``"fiber:roughness:beta": 12``), and optional ``"profiles"``: user cross sections
+``[{"loops": [[[x, y], ...], ...], "smooth": false}]`` in um.
+
+The cache is ``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else ``~/.cache/usdfiber``.
+A progress bar with the time left is drawn on stderr; for every table one line goes to
+stdout: its cache key, file, photons, error estimate (relative L2 of p), time and status.
+
+Exit status: 0 done, 2 bad input (one line on stderr), 130 interrupted (finished
+directions are kept and resumed next time).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import warnings
+from typing import Any
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return v
+
+
+def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Make ``parser`` report command-line errors as one line (no usage block), exit 2."""
+    def error(message: str):
+        parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+    parser.error = error  # type: ignore[method-assign]
+    return parser
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bake",
+        help="bake the BCSDF tables that stages, presets or parameter files need",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("stages", nargs="*", metavar="STAGE", help="USD files whose fibers need tables")
+    p.add_argument("--preset", action="append", default=[], metavar="NAME",
+                   help="bake the tables of a fiber preset (repeatable)")
+    p.add_argument("--params", action="append", default=[], metavar="FILE.json",
+                   help="bake the tables of a fiber given as JSON (repeatable)")
+    p.add_argument("--photons", type=_positive_int, default=None, metavar="N",
+                   help="photons per incoming direction (default 1000000; with --target-error "
+                        "the first amount)")
+    p.add_argument("--target-error", type=_positive_float, default=None, metavar="E",
+                   help="trace each direction until the relative L2 error of p is below E "
+                        "(e.g. 0.01)")
+    p.add_argument("--max-photons", type=_positive_int, default=None, metavar="N",
+                   help="cap per direction with --target-error (default 64000000)")
+    p.add_argument("--resolution", type=_positive_float, default=2.0, metavar="DEG",
+                   help="angular bin size in degrees, dividing 90 (default 2, the paper's)")
+    p.add_argument("--batches", type=_positive_int, default=None, metavar="B",
+                   help="independent batches per direction for the error estimate (default 8)")
+    p.add_argument("--max-bounces", type=_positive_int, default=None, metavar="N",
+                   help="interactions before a photon is dropped (default 4096)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--incoming", choices=("centre", "box"), default="centre",
+                   help="light of a table node from the bin centre (default, the paper's) or spread "
+                        "over the bin (box: a reciprocal bin-averaged table)")
+    p.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="table cache (default $USDFIBER_CACHE_DIR or ~/.cache/usdfiber)")
+    p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
+                   help="tables baked at once in separate processes (default 1)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="list the tables (key, cached or not) without baking")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+    one_line_errors(p)
+
+
+def _settings(args: argparse.Namespace):
+    from usdfiber.bake.baker import BakeError, BakeSettings
+    from usdfiber.cli import UsageError
+
+    kw: dict[str, Any] = {"resolution_deg": args.resolution, "seed": args.seed, "incoming": args.incoming}
+    if args.photons is not None:
+        kw["photons"] = args.photons
+    if args.target_error is not None:
+        if args.target_error >= 1:
+            raise UsageError(f"--target-error must be below 1, got {args.target_error:g}")
+        kw["target_error"] = args.target_error
+    if args.max_photons is not None:
+        kw["max_photons"] = args.max_photons
+    if args.batches is not None:
+        kw["batches"] = args.batches
+    if args.max_bounces is not None:
+        kw["max_bounces"] = args.max_bounces
+    try:
+        return BakeSettings(**kw)
+    except (BakeError, ValueError) as exc:
+        raise UsageError(str(exc).replace("resolution", "--resolution", 1)) from None
+
+
+def _requests(args: argparse.Namespace) -> list:
+    from usdfiber.bake.baker import BakeError, requests_from_params, requests_from_preset, tables_for_stage
+    from usdfiber.cli import UsageError
+    from usdfiber.stage_io import StageOpenError, open_stage
+
+    if not (args.stages or args.preset or args.params):
+        raise UsageError("nothing to bake: give STAGE files, --preset NAME or --params FILE.json")
+    reqs = []
+    try:
+        for path in args.stages:
+            try:
+                stage = open_stage(path)
+            except StageOpenError as exc:
+                raise UsageError(str(exc)) from None
+            for r in tables_for_stage(stage):
+                r.prims = [f"{path}:{p}" for p in r.prims]
+                reqs.append(r)
+        for name in args.preset:
+            reqs.extend(requests_from_preset(name))
+        for path in args.params:
+            reqs.extend(requests_from_params(path))
+    except BakeError as exc:
+        raise UsageError(str(exc)) from None
+    return reqs
+
+
+def _dedupe(reqs: list, cache, settings) -> list[tuple[str, Any]]:
+    out: dict[str, Any] = {}
+    for r in reqs:
+        k = cache.key(r, settings)
+        if k in out:
+            out[k].prims.extend(p for p in r.prims if p not in out[k].prims)
+        else:
+            out[k] = r
+    return list(out.items())
+
+
+def _line(res, req) -> str:
+    t = res.table
+    ph = t.arrays["photons"]
+    err = t.header.get("error_estimate", {})
+    status = "cached" if not res.baked else ("baked" if not res.resumed else f"baked (resumed {res.resumed} directions)")
+    per = f"{int(ph.min())}" if int(ph.min()) == int(ph.max()) else f"{int(ph.min())}-{int(ph.max())}"
+    users = ", ".join(req.prims[:3]) + (f" (+{len(req.prims) - 3})" if len(req.prims) > 3 else "")
+    return (f"{res.key}  {res.path}  photons={int(ph.sum())} ({per}/direction)  "
+            f"error={err.get('rms', float('nan')):.4f} rms, {err.get('max', float('nan')):.4f} max  "
+            f"time={res.seconds:.1f}s  {status}  [{req.label}: {users}]")
+
+
+def _worker_init(threads: int) -> None:
+    try:
+        from usdfiber.backend import mitsuba
+
+        mitsuba()
+        import drjit as dr
+
+        dr.set_thread_count(threads)
+    except Exception:  # noqa: BLE001 - the bake reports Mitsuba problems itself
+        pass
+
+
+def _worker(job: tuple) -> tuple:
+    root, req, settings = job
+    import usdfiber  # noqa: F401
+    from usdfiber.bake.cache import TableCache
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = TableCache(root).get_or_bake(req, settings)
+    res.table = _Light(res.table)
+    return res, [str(w.message) for w in caught]
+
+
+class _Light:
+    """What the parent needs of a table a worker baked (arrays stay in the worker)."""
+
+    def __init__(self, table) -> None:
+        self.header = table.header
+        self.arrays = {"photons": table.arrays["photons"]}
+
+
+def run(args: argparse.Namespace) -> int:
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.cli import UsageError
+
+    settings = _settings(args)
+    cache = TableCache(args.cache_dir)
+    reqs = _requests(args)
+    jobs = _dedupe(reqs, cache, settings)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        print(f"usdfiber: warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = show_warning  # one line per warning, no source location
+
+    if args.dry_run:
+        for key, req in jobs:
+            state = "cached" if cache.contains(key) else "to bake"
+            print(f"{key}  {cache.table_path(key)}  {state}  [{req.label}: {', '.join(req.prims[:3])}]")
+        print(f"{len(jobs)} table{'s' if len(jobs) != 1 else ''}")
+        return 0
+    if not jobs:
+        print("nothing to bake: no fiber prims need tables")
+        return 0
+    try:
+        cache.root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"cannot create the cache directory {cache.root}: {exc.strerror or exc}") from None
+
+    from tqdm import tqdm
+
+    show = not args.no_progress
+    if args.jobs > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        threads = max(1, (os.cpu_count() or 1) // args.jobs)
+        ctx = mp.get_context("spawn")
+        bar = tqdm(total=len(jobs), unit="table", desc="tables", file=sys.stderr, disable=not show)
+        with ctx.Pool(min(args.jobs, len(jobs)), initializer=_worker_init, initargs=(threads,)) as pool:
+            order = {k: r for k, r in jobs}
+            for res, msgs in pool.imap_unordered(_worker, [(cache.root, r, settings) for _, r in jobs]):
+                for m in msgs:
+                    print(f"usdfiber: warning: {m}", file=sys.stderr)
+                bar.write(_line(res, order[res.key]), file=sys.stdout)
+                bar.update(1)
+        bar.close()
+        return 0
+
+    for i, (key, req) in enumerate(jobs):
+        bar = None
+        desc = f"[{i + 1}/{len(jobs)}] {req.label}"
+
+        def progress(done: int, total: int, info: dict) -> None:
+            nonlocal bar
+            if not show:
+                return
+            if info.get("event") == "start":
+                bar = tqdm(total=total, initial=done, unit="dir", desc=desc, file=sys.stderr,
+                           dynamic_ncols=True, leave=True)
+            elif bar is not None:
+                bar.update(done - bar.n)
+                if "rel_error" in info:
+                    bar.set_postfix_str(f"err {info['rel_error']:.3f}", refresh=False)
+
+        try:
+            res = cache.get_or_bake(req, settings, progress)
+        finally:
+            if bar is not None:
+                bar.close()
+        print(_line(res, req), flush=True)
+    return 0

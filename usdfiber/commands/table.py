@@ -1,0 +1,277 @@
+"""``usdfiber table inspect FILE`` and ``usdfiber table plot FILE ... -o OUT.png``.
+
+``inspect`` prints a table's header: the fiber inputs it was baked for (with units), its
+resolution and symmetries, photons, error estimate, absorption levels, storage and an
+albedo summary. ``--json`` prints the header and the summary as JSON.
+
+``plot`` writes one slice of the BCSDF like the paper's Figure 3: for the light direction
+(``--theta-i``, ``--phi-i``, degrees, fiber rotated by ``--psi``), the scattered intensity
+``Lambda(omega_i) p(omega_o | omega_i)`` (per steradian, luminance of the linear Rec.709
+channels when dyed) in false colour on a log10 scale over ``--decades`` decades; theta_o
+runs from +90 (top) to -90 degrees (bottom), phi_o from 0 (left) to 360 degrees (right).
+Undyed by default; ``--dye NAME`` (a dye preset or colour of ``usdfiber presets``) with
+``--depth-of-shade`` (percent, default 0.1 as in Figure 3), ``--density`` and
+``--diameter`` (defaults: the fiber recorded in the table), or ``--mu-a R G B`` (1/um).
+The image is written through OpenImageIO (format from the extension: .png, .exr, ...).
+
+Exit status: 0 done, 2 bad input or an unreadable table (one line on stderr).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+
+def _finite(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
+    return v
+
+
+def _nonneg(text: str) -> float:
+    v = _finite(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _positive(text: str) -> float:
+    v = _finite(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "table",
+        help="inspect or plot a baked BCSDF table",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    tsub = p.add_subparsers(dest="table_command", metavar="ACTION")
+    tsub.required = True
+    pi = tsub.add_parser("inspect", help="print a table's header and summary",
+                         description="Print a table's header: inputs, units, resolution, photons, "
+                                     "error estimate, albedo summary.")
+    pi.add_argument("file", metavar="FILE")
+    pi.add_argument("--json", action="store_true", help="print JSON")
+    pi.set_defaults(func=run_inspect)
+
+    pp = tsub.add_parser("plot", help="write a false-colour log slice of the BCSDF (paper Fig. 3)",
+                         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    pp.add_argument("file", metavar="FILE")
+    pp.add_argument("--theta-i", type=_finite, required=True, metavar="DEG", help="light longitude, degrees")
+    pp.add_argument("--phi-i", type=_finite, required=True, metavar="DEG", help="light azimuth, degrees")
+    pp.add_argument("--psi", type=_finite, default=0.0, metavar="DEG", help="fiber rotation, degrees")
+    pp.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
+    pp.add_argument("--depth-of-shade", type=_nonneg, default=0.1, metavar="PCT",
+                    help="depth of shade in percent (default 0.1)")
+    pp.add_argument("--density", type=_positive, default=None, metavar="G_CM3",
+                    help="fiber density (default: the table's fiber)")
+    pp.add_argument("--diameter", type=_positive, default=None, metavar="UM",
+                    help="fiber diameter in um (default: the table's fiber)")
+    pp.add_argument("--mu-a", type=_nonneg, nargs=3, default=None, metavar=("R", "G", "B"),
+                    help="absorption coefficient per channel, 1/um (instead of --dye)")
+    pp.add_argument("--decades", type=_positive, default=4.0, help="log10 range shown (default 4)")
+    pp.add_argument("--scale", type=int, default=4, metavar="PX", help="pixels per bin (default 4)")
+    pp.add_argument("--smooth", action="store_true", help="bilinear between bin centres instead of bins")
+    pp.add_argument("-o", "--output", required=True, metavar="OUT.png", help="image to write")
+    pp.set_defaults(func=run_plot)
+    from usdfiber.commands.bake import one_line_errors
+
+    for parser in (p, pi, pp):
+        one_line_errors(parser)
+
+
+def _load(path: str):
+    from usdfiber.bake.table import BcsdfTable, TableLayoutError
+    from usdfiber.cli import UsageError
+    from usdfiber.table_format import TableError
+
+    try:
+        return BcsdfTable.load(path)
+    except (TableError, TableLayoutError) as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _fmt_inputs(inputs: dict[str, Any]) -> str:
+    parts = []
+    units = inputs.get("units", {})
+    for k, v in inputs.items():
+        if k == "units":
+            continue
+        if k == "user_profiles":
+            parts.append(f"user_profiles={len(v)} ({sum(len(u['loops']) for u in v)} loops, um)")
+            continue
+        if isinstance(v, dict):
+            inner = ", ".join(f"{ik}={iv}" + (f" {units.get(f'{k}.{ik}', '')}".rstrip()) for ik, iv in v.items())
+            parts.append(f"{k}: {inner}")
+            continue
+        u = units.get(k, "")
+        parts.append(f"{k}={v}" + (f" {u}" if u and u != "1" else ""))
+    return "; ".join(parts)
+
+
+def run_inspect(args: argparse.Namespace) -> int:
+    table = _load(args.file)
+    h = table.header
+    s = table.summary()
+    alb = table.arrays["albedo"][:, :, 0].astype(np.float64)
+    fiber = h.get("fiber") or {}
+    dyed = None
+    if fiber.get("mu_a_per_um") and any(fiber["mu_a_per_um"]):
+        rec = table.recolour(fiber["mu_a_per_um"], fiber.get("diameter_um", 1.0) / table.baked_diameter_um)
+        a = rec.albedo.astype(np.float64)
+        dyed = {"mu_a_per_um": fiber["mu_a_per_um"], "diameter_um": fiber.get("diameter_um"),
+                "albedo_min": a.min(axis=(0, 1)).tolist(), "albedo_mean": a.mean(axis=(0, 1)).tolist(),
+                "albedo_max": a.max(axis=(0, 1)).tolist()}
+    size = os.path.getsize(args.file)
+    summary = dict(s, file_bytes=size,
+                   albedo={"min": float(alb.min()), "mean": float(alb.mean()), "max": float(alb.max())},
+                   albedo_dyed=dyed)
+    if args.json:
+        hdr = {k: v for k, v in h.items() if k not in ("checksums",)}
+        print(json.dumps({"file": args.file, "header": hdr, "summary": summary}, indent=2, sort_keys=True))
+        return 0
+    res = h["resolution"]
+    err = h.get("error_estimate", {})
+    ph = h.get("photons", {})
+    lay = h.get("layout", {})
+    sym = []
+    if res.get("theta_symmetric"):
+        sym.append("theta symmetric (theta_i >= 0 stored)")
+    else:
+        sym.append("no theta symmetry (cuticle)")
+    if res.get("rotationally_symmetric"):
+        sym.append("rotationally symmetric (one phi_i)")
+    cut = h.get("cuticle")
+    lines = [
+        f"{args.file}",
+        f"  format:      {h.get('format')} v{h.get('version')}, layout {lay.get('name')} v{lay.get('version')}, "
+        f"created {h.get('created', '?')}",
+        f"  geometry:    key {h.get('geometry_key')}",
+        f"  cache key:   {h.get('cache_key', '-')}",
+        f"  fiber:       {h.get('kind', '?')} / {h.get('profile_family', '?')}, variant {h.get('variant', 0)}"
+        + (f" of {h['variant_count']}" if 'variant_count' in h else "")
+        + (f", first baked for {fiber.get('prim')}" if fiber.get("prim") else ""),
+        f"  inputs:      {_fmt_inputs(h.get('inputs', {}))}",
+        f"  traced:      eta {h.get('eta')}, beta {h.get('beta_deg')} deg, "
+        f"profile {h.get('profile', {}).get('name')} ({h.get('profile', {}).get('edges')} edges, "
+        f"{h.get('profile', {}).get('loops')} loops), baked diameter {h.get('baked_diameter_um')} um"
+        + (f", cuticle tilt {cut['tilt_deg']} deg height {cut['height_um']:.4g} um spacing {cut['spacing_um']:.4g} um"
+           if cut else ""),
+        f"  resolution:  {res['deg']} deg: omega_i {res['theta_i']} theta x {res['phi_i']} phi, "
+        f"omega_o {res['theta_o']} theta x {res['phi_o']} phi (band of {table.n_band} theta_o rows); "
+        + "; ".join(sym),
+        f"  photons:     {ph.get('total')} in all, {ph.get('min_per_direction')}-{ph.get('max_per_direction')} "
+        f"per direction, {ph.get('batches')} batches",
+        f"  error:       relative L2 of p: rms {err.get('rms', float('nan')):.4f}, median "
+        f"{err.get('median', float('nan')):.4f}, max {err.get('max', float('nan')):.4f}"
+        + (f" (target {err['target']})" if err.get("target") else ""),
+        f"  levels:      {len(table.levels)} absorption levels, optical depth per diameter "
+        f"{', '.join(f'{x:g}' for x in h.get('levels_optical_depth', []))}",
+        f"  albedo:      sigma_a = 0: min {alb.min():.5f}, mean {alb.mean():.5f}, max {alb.max():.5f}",
+    ]
+    if dyed:
+        lines.append(f"               recorded dye (mu_a {', '.join(f'{x:.4g}' for x in dyed['mu_a_per_um'])} 1/um,"
+                     f" {dyed['diameter_um']} um): mean " + ", ".join(f"{x:.4f}" for x in dyed["albedo_mean"]))
+    q = h.get("quantization_error", {}).get("per_level", [])
+    lines += [
+        f"  storage:     {h.get('storage')} ({max(q) if q else 0:.1e} relative L2 from rounding), "
+        f"{table.nbytes() / 1e6:.2f} MB in memory, {size / 1e6:.2f} MB on disk",
+        f"  units:       angles deg (header), p 1/sr, W um at the baked size, levels 1/um at the baked size",
+        f"  bake:        {h.get('bake', {}).get('wall_seconds', float('nan')):.1f} s on "
+        f"{h.get('bake', {}).get('machine', {}).get('cpus', '?')} CPUs",
+    ]
+    print("\n".join(lines))
+    return 0
+
+
+# Perceptual false colour (an inferno-like ramp): anchors at equal steps from 0 to 1.
+_RAMP = np.array([
+    [0.000, 0.000, 0.016], [0.122, 0.047, 0.282], [0.333, 0.059, 0.427], [0.533, 0.133, 0.416],
+    [0.729, 0.212, 0.333], [0.890, 0.349, 0.200], [0.976, 0.549, 0.039], [0.976, 0.788, 0.196],
+    [0.988, 1.000, 0.643],
+])
+
+
+def false_colour(x: np.ndarray) -> np.ndarray:
+    """Map values in [0, 1] to RGB through the ramp (linear between anchors)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0) * (len(_RAMP) - 1)
+    i = np.minimum(np.floor(x).astype(np.int64), len(_RAMP) - 2)
+    t = (x - i)[..., None]
+    return (1 - t) * _RAMP[i] + t * _RAMP[i + 1]
+
+
+def run_plot(args: argparse.Namespace) -> int:
+    from usdfiber.cli import UsageError
+
+    table = _load(args.file)
+    fiber = table.header.get("fiber") or {}
+    if args.scale < 1 or args.scale > 64:
+        raise UsageError(f"--scale must be 1 to 64 pixels per bin, got {args.scale}")
+    if abs(args.theta_i) > 90:
+        raise UsageError(f"--theta-i must be within [-90, 90] degrees, got {args.theta_i:g}")
+    diameter = args.diameter if args.diameter is not None else float(fiber.get("diameter_um") or table.baked_diameter_um)
+    if args.mu_a is not None and args.dye is not None:
+        raise UsageError("give either --dye or --mu-a, not both")
+    if args.mu_a is not None:
+        mu_a = [float(x) for x in args.mu_a]
+    elif args.dye is not None:
+        from usdfiber import presets
+        from usdfiber.fiber_params import mu_a_per_um
+
+        try:
+            _cls, eps = presets.dye_values(args.dye)
+        except KeyError:
+            valid = list(presets.DYE_PRESETS) + list(presets.DYE_COLOURS)
+            raise UsageError(f"unknown dye {args.dye!r}; valid: {', '.join(valid)}") from None
+        density = args.density if args.density is not None else float(fiber.get("density_g_cm3") or 1.4)
+        mu_a = [mu_a_per_um(density, args.depth_of_shade, e) for e in eps]
+    else:
+        mu_a = [0.0, 0.0, 0.0]
+    rec = table.recolour(mu_a, diameter / table.baked_diameter_um)
+    g = table.grid
+    h_px, w_px = g.n_theta_o * args.scale, g.n_phi_o * args.scale
+    theta = np.radians(90.0 - (np.arange(h_px) + 0.5) * 180.0 / h_px)
+    phi = np.radians((np.arange(w_px) + 0.5) * 360.0 / w_px)
+    T, P = np.meshgrid(theta, phi, indexing="ij")
+    ti, pi, psi = math.radians(args.theta_i), math.radians(args.phi_i), math.radians(args.psi)
+    p = rec.eval_p(ti, pi, T, P, psi=psi, interp_o="bilinear" if args.smooth else "nearest")
+    alb = rec.albedo_at(ti, pi, psi=psi)
+    val = p * alb                                       # (H, W, 3)
+    lum = val @ np.array([0.2126, 0.7152, 0.0722])
+    top = float(lum.max())
+    if not top > 0:
+        raise UsageError("the slice is empty (no light scattered)")
+    lo = math.log10(top) - args.decades
+    with np.errstate(divide="ignore"):
+        x = (np.log10(np.maximum(lum, 1e-300)) - lo) / args.decades
+    img = false_colour(x)
+    img[lum <= 0] = 0.0
+    import OpenImageIO as oiio
+
+    ext = os.path.splitext(args.output)[1].lower()
+    if ext in (".exr", ".hdr", ".tif", ".tiff"):
+        buf = oiio.ImageBuf(img.astype(np.float32))
+    else:
+        buf = oiio.ImageBuf((np.round(img * 255.0)).astype(np.uint8))
+    spec = buf.specmod()
+    spec.attribute("ImageDescription",
+                   f"usdfiber BCSDF slice: log10(Lambda p) per sr, theta_i {args.theta_i:g} deg, "
+                   f"phi_i {args.phi_i:g} deg, psi {args.psi:g} deg; rows theta_o +90..-90, cols phi_o 0..360")
+    if not buf.write(args.output):
+        raise UsageError(f"cannot write {args.output}: {buf.geterror() or oiio.geterror()}")
+    print(f"wrote {args.output} ({w_px}x{h_px}): log10(Lambda p) from {lo:.3g} to {lo + args.decades:.3g} "
+          f"per sr; albedo {', '.join(f'{a:.4f}' for a in np.atleast_1d(alb))}")
+    return 0
