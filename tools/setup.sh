@@ -25,4 +25,6 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import usdfiber" 
   echo "usdfiber setup: pip install -e .[test]"
   "$PY" -m pip install -q --disable-pip-version-check --root-user-action=ignore -e ".[test]"
   mkdir -p build && echo "$want" > "$stamp"
+  # pyenv exposes new console scripts (usdfiber) only after a rehash.
+  if command -v pyenv >/dev/null 2>&1; then pyenv rehash || true; fi
 fi
