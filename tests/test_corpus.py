@@ -1,8 +1,9 @@
 """The bad-input corpus: every file in tests/corpus/bad has its exact expected problems.
 
 ``tests/corpus/expected.json`` maps a file name to the list of problems ``check_stage``
-must find in it, each ``{"code", "severity", "prim", "attribute"}``, compared as a set
-(the same problem at several time samples counts once). A file that cannot be opened
+must find in it, each ``{"code", "severity", "prim", "attribute", "message"}``, compared as
+a set (the same problem at several time samples counts once); ``message`` is a fragment the
+problem's message must contain (what was found and what was expected). A file that cannot be opened
 expects exactly one entry: ``{"code": <StageOpenError.code>, "severity": "error",
 "prim": null, "attribute": null}``.
 
@@ -28,13 +29,20 @@ FILES = sorted(p.name for p in BAD.iterdir() if p.is_file())
 Key = tuple[str, str, "str | None", "str | None"]
 
 
-def found(path: Path) -> set[Key]:
-    """What check_stage reports for ``path``, in the expectation's terms."""
+def found_messages(path: Path) -> dict[Key, list[str]]:
+    """What check_stage reports for ``path``, in the expectation's terms, with messages."""
     try:
         report = check_stage(path)
     except StageOpenError as exc:
-        return {(exc.code, "error", None, None)}
-    return {(p.code, p.severity.value, p.prim, p.attribute) for p in report.problems}
+        return {(exc.code, "error", None, None): [str(exc)]}
+    out: dict[Key, list[str]] = {}
+    for p in report.problems:
+        out.setdefault((p.code, p.severity.value, p.prim, p.attribute), []).append(p.message)
+    return out
+
+
+def found(path: Path) -> set[Key]:
+    return set(found_messages(path))
 
 
 def expected(name: str) -> set[Key]:
@@ -44,7 +52,11 @@ def expected(name: str) -> set[Key]:
 @pytest.mark.parametrize("name", FILES)
 def test_corpus_file(name: str) -> None:
     assert name in EXPECTED, f"tests/corpus/expected.json has no entry for {name}"
-    assert found(BAD / name) == expected(name)
+    got = found_messages(BAD / name)
+    assert set(got) == expected(name)
+    for e in EXPECTED[name]:
+        key = (e["code"], e["severity"], e["prim"], e["attribute"])
+        assert any(e["message"] in m for m in got[key]), (e["message"], got[key])
 
 
 def test_every_expectation_has_a_file() -> None:
@@ -56,7 +68,8 @@ def test_expectations_are_well_formed_and_sorted() -> None:
     for name, entries in EXPECTED.items():
         assert entries, f"{name}: an entry must list at least one problem"
         for e in entries:
-            assert set(e) == {"code", "severity", "prim", "attribute"}, name
+            assert set(e) == {"code", "severity", "prim", "attribute", "message"}, name
+            assert len(e["message"]) >= 20, name
             assert e["severity"] in ("error", "warning"), name
 
 
