@@ -1,11 +1,11 @@
-"""Photon tracer of the baker: meshes, physics checks against exact answers, binning, recolouring."""
+"""Photon tracer of the baker: meshes, physics checks against exact answers, binning."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from usdfiber.backend import mitsuba
-from usdfiber.bake.binning import ExitGrid, bin_direct, bin_exits, default_levels, recolour
+from usdfiber.bake.binning import ExitGrid, bin_direct
 from usdfiber.bake.exact import azimuthal_distribution, reflection_energy
 from usdfiber.bake.fiber_mesh import build_fiber_mesh
 from usdfiber.bake.profiles import Profile, builtin_profiles_um, circle, ellipse, fourier_loop, profile_from_polygons
@@ -315,28 +315,17 @@ def test_loop_modes_agree_and_seed_is_deterministic():
     assert not np.array_equal(a.directions[:100], d.directions[:100])
 
 
-# ---- binning and recolouring ---------------------------------------------------------------------------
+# ---- binning ----------------------------------------------------------------------------------------
 
-def test_binning_normalisation_and_recolour_vs_direct():
-    r = trace(scene("cotton"), 0.5, 0.3, 1 << 20, eta=ETA, beta_deg=10.0, seed=13)
-    tab = bin_exits(r)
-    om = tab.grid.solid_angle
+def test_binning_is_per_steradian_and_sums_to_the_albedo():
+    """Recolouring from absorption levels is tested in test_table.py against bin_direct."""
+    r = trace(scene("cotton"), 0.5, 0.3, 1 << 18, eta=ETA, beta_deg=10.0, seed=13)
+    grid = ExitGrid()
+    om = grid.solid_angle
     assert om.sum() == pytest.approx(4 * np.pi)
-    assert tab.albedo()[0] == pytest.approx(r.albedo(), abs=1e-9)
-    np.testing.assert_allclose(tab.albedo(), [r.albedo(s) for s in tab.levels], rtol=1e-9)
-    # At a tabulated level recolouring is exact.
-    np.testing.assert_allclose(recolour(tab, tab.levels[5]), tab.density[5], rtol=1e-9)
-    # The paper's dyes span 0.005 to 0.085 /um; RGB at once.
-    sig = np.array([0.005, 0.02, 0.05, 0.085])
-    rec = recolour(tab, sig)
-    direct = bin_direct(r, sig)
-    assert rec.shape == (90, 180, 4)
-    for c in range(len(sig)):
-        err = np.sum(np.abs(rec[..., c] - direct[..., c]) * om) / np.sum(direct[..., c] * om)
-        assert err < 1e-3, (sig[c], err)
-        lin = recolour(tab, sig[c], method="linear")
-        err_lin = np.sum(np.abs(lin - direct[..., c]) * om) / np.sum(direct[..., c] * om)
-        assert err_lin < 3e-2, (sig[c], err_lin)
-    # Levels default: 0 and 12 geometric steps spanning 1e-4..1 /um.
-    lv = default_levels()
-    assert len(lv) == 13 and lv[0] == 0 and lv[1] == pytest.approx(1e-4) and lv[-1] == pytest.approx(1.0)
+    sig = np.array([0.0, 0.005, 0.085, 1.0])  # the paper's dyes span 0.005 to 0.085 /um
+    dens = bin_direct(r, sig, grid)
+    assert dens.shape == (90, 180, 4)
+    albedo = np.einsum("ijc,ij->c", dens, om)
+    np.testing.assert_allclose(albedo, [r.albedo(s) for s in sig], rtol=1e-9)
+    assert np.all(np.diff(albedo) < 0)  # more dye, less light

@@ -588,7 +588,7 @@ def trace(
     """
     import time
 
-    mi = mitsuba()
+    mitsuba()  # selects the JIT variant (and LLVM) before drjit is used
     import drjit as dr
 
     fs = profile if isinstance(profile, FiberScene) else prepare(profile, cuticle)

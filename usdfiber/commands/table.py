@@ -189,7 +189,7 @@ def run_inspect(args: argparse.Namespace) -> int:
     lines += [
         f"  storage:     {h.get('storage')} ({max(q) if q else 0:.1e} relative L2 from rounding), "
         f"{table.nbytes() / 1e6:.2f} MB in memory, {size / 1e6:.2f} MB on disk",
-        f"  units:       angles deg (header), p 1/sr, W um at the baked size, levels 1/um at the baked size",
+        "  units:       angles deg (header), p 1/sr, W um at the baked size, levels 1/um at the baked size",
         f"  bake:        {h.get('bake', {}).get('wall_seconds', float('nan')):.1f} s on "
         f"{h.get('bake', {}).get('machine', {}).get('cpus', '?')} CPUs",
     ]
