@@ -109,6 +109,16 @@ def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
         raise TableError(path, f"cannot write: header is not JSON: {exc}") from exc
     header_bytes = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
 
+    save_npz_atomic(path, {HEADER_ENTRY: header_bytes, **clean}, compress=compress)
+    return full
+
+
+def save_npz_atomic(path: str | os.PathLike[str], arrays: Mapping[str, np.ndarray], *,
+                    compress: bool = True) -> None:
+    """Write ``arrays`` as an .npz at ``path`` so that readers see the old file or the new
+    one, never a partial one: a temporary file in the same directory, fsync, rename, fsync
+    of the directory. A failure (or Ctrl-C) leaves no temporary file behind."""
+    path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
@@ -119,8 +129,7 @@ def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
             mode = 0o644
         os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
-            save = np.savez_compressed if compress else np.savez
-            save(f, **{HEADER_ENTRY: header_bytes}, **clean)
+            (np.savez_compressed if compress else np.savez)(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -131,7 +140,6 @@ def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
             pass
         raise
     _fsync_dir(directory)
-    return full
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -63,6 +63,7 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 
 from usdfiber.bake.table import DEFAULT_LEVELS, WIDTH_SAMPLES, BcsdfTable, Grid, assemble
+from usdfiber.table_format import save_npz_atomic
 
 __all__ = [
     "BAKER_VERSION",
@@ -419,19 +420,7 @@ def _save_chunk(directory: Path, ti: int, pi: int, data: Mapping[str, Any]) -> N
         "scalars": np.array([data["norm"], data["photons"], data["n_hit"], data["n_cut"], data["leaks"],
                              data["misses"], data["rel_error"], data["seconds"]], dtype=np.float64),
     }
-    fd, tmp = tempfile.mkstemp(prefix=".chunk.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, directory / _chunk_name(ti, pi))
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    save_npz_atomic(directory / _chunk_name(ti, pi), arrays)
 
 
 def _load_chunk(path: Path) -> dict[str, Any] | None:
