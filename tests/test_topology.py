@@ -49,8 +49,13 @@ def curve_points(counts) -> np.ndarray:
 
 
 def add_curves(stage, path, counts, *, curve_type="cubic", basis="bspline",
-               wrap="nonperiodic", points=None, widths=None, interpolation=None,
+               wrap="nonperiodic", points=None, widths="auto", interpolation=None,
                apis=("FiberAPI",)) -> Usd.Prim:
+    """Fiber (or yarn) curves; ``widths="auto"``: one constant width that matches the schema's
+    fallback fiber diameter (10 um) or yarn diameter (2 plies of 0.1 mm: 0.4 mm) at the
+    stage's micrometre units; ``widths=None``: no widths authored."""
+    if isinstance(widths, str) and widths == "auto":
+        widths, interpolation = ([400.0] if "FiberYarnAPI" in apis else [10.0]), "constant"
     curves = UsdGeom.BasisCurves.Define(stage, path)
     prim = curves.GetPrim()
     for api in apis:
@@ -164,9 +169,12 @@ def test_valid_curves_of_every_kind_have_no_problems(curve_type, basis, wrap, co
     assert check_curves_prim(prim) == []
 
 
-def test_widths_not_authored_and_empty_prim_are_fine():
+def test_widths_not_authored_warn_and_empty_prim_is_fine():
     stage = new_stage()
-    assert check_curves_prim(add_curves(stage, "/F", [4, 5])) == []
+    missing = check_curves_prim(add_curves(stage, "/F", [4, 5], widths=None))
+    assert codes(missing) == ["WidthsMissing"]
+    assert missing[0].severity is Severity.WARNING and missing[0].attribute == "widths"
+    assert "about 10 scene units" in missing[0].message  # fiber:diameter 10 um, metersPerUnit 1e-6
     assert check_curves_prim(add_curves(stage, "/E", [])) == []
 
 

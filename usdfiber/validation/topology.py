@@ -539,7 +539,18 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
     mpu = UsdGeom.GetStageMetersPerUnit(prim.GetStage())
     col = _Collector(prim)
 
-    if widths_attr is not None and interp not in WIDTH_INTERPOLATIONS:
+    if widths_attr is None:
+        # Renderers then fall back to a width of their own (1 scene unit in Hydra), which has
+        # nothing to do with the fiber: say what the widths should be.
+        ref = expected_width(prim, Usd.TimeCode.Default(), applied)
+        scale_m = scale * mpu if scale > 0 and mpu > 0 else float("nan")
+        about = (f"; expected widths of about {ref.expected_m / scale_m:.4g} scene units "
+                 f"({ref.what})" if ref is not None and math.isfinite(scale_m) else "")
+        problems.append(Problem(
+            "WidthsMissing", warn, path, "widths",
+            f"no widths authored, so the curves have no defined thickness{about}",
+            layer=_layer_of(prim, Usd.TimeCode.Default())))
+    elif interp not in WIDTH_INTERPOLATIONS:
         problems.append(Problem(
             "WidthsInterpolationInvalid", err, path, widths_attr.GetName(),
             f"widths interpolation is {interp!r}; expected one of "
