@@ -1,4 +1,4 @@
-"""Write examples/fibers.usda and examples/threads.usda with usdfiber's authoring API.
+"""Write the example stages (fibers.usda, threads.usda, demo.usda) with usdfiber's authoring API.
 
     python examples/make_examples.py [OUTPUT_DIR]
 
@@ -18,7 +18,7 @@ except ImportError:  # running from a source checkout without an install
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
     import usdfiber  # noqa: F401
 
-from pxr import Gf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
 from usdfiber import authoring as A
 from usdfiber.presets import FIBER_PRESETS, YARN_PRESETS
@@ -144,11 +144,84 @@ def make_threads(out: Path) -> Path:
     return path
 
 
+def make_demo(out: Path) -> Path:
+    """The demo render: three tufts of dyed polyester fibers on a grey card, one camera,
+    a dome and a key light. Polyester's round cross section bakes in seconds."""
+    stage = _new_stage(
+        "Demo: tufts of polyester fibers dyed with disperse red, yellow and blue at three depths "
+        "of shade (Aliaga et al. 2017, Section 3.1), lying on a grey card. "
+        "Render: usdfiber render examples/demo.usda -o demo.exr. Units: mm.",
+        "/Demo")
+    cls = A.define_fiber_class(stage, f"{CLASS_ROOT}/Polyester", "polyester")
+    d_mm = FIBER_PRESETS["polyester"].diameter_um * MM_PER_UM
+    tufts = [("Red", "disperseRed", 0.5, -0.35), ("Yellow", "disperseYellow", 1.0, 0.0),
+             ("Blue", "disperseBlue", 2.0, 0.35)]
+    for name, dye, dos, z0 in tufts:
+        curves = UsdGeom.BasisCurves.Define(stage, f"/Demo/Tuft{name}")
+        curves.CreateTypeAttr(UsdGeom.Tokens.cubic)
+        curves.CreateBasisAttr(UsdGeom.Tokens.bspline)
+        n_fib, n_pts = 48, 8
+        pts = []
+        for i in range(n_fib):
+            # Fibers fan out from a bundle: a deterministic spread in z and height, gentle waves.
+            u = (i + 0.5) / n_fib
+            z = z0 + 0.22 * (u - 0.5) + 0.01 * math.sin(37.0 * u)
+            y = d_mm * (1.0 + 3.0 * abs(math.sin(13.0 * u)))
+            for j in range(n_pts):
+                x = -0.9 + 1.8 * j / (n_pts - 1)
+                pts.append(Gf.Vec3f(x, y + 0.012 * math.sin(3.0 * x + 5.0 * u), z + 0.03 * math.sin(2.0 * x + 9.0 * u)))
+        curves.CreatePointsAttr(Vt.Vec3fArray(pts))
+        curves.CreateCurveVertexCountsAttr(Vt.IntArray([n_pts] * n_fib))
+        curves.CreateWidthsAttr(Vt.FloatArray([d_mm]))
+        curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+        curves.CreateExtentAttr(UsdGeom.Curves.ComputeExtent(curves.GetPointsAttr().Get(),
+                                                             curves.GetWidthsAttr().Get()))
+        A.inherit(curves.GetPrim(), cls.GetPath())
+        A.apply_fiber(curves.GetPrim(), None, dye=dye, depth_of_shade=dos)
+
+    # A grey card under the fibers (UsdPreviewSurface).
+    card = UsdGeom.Mesh.Define(stage, "/Demo/Card")
+    card.CreatePointsAttr([(-1.5, 0.0, -1.0), (1.5, 0.0, -1.0), (1.5, 0.0, 1.0), (-1.5, 0.0, 1.0)])
+    card.CreateFaceVertexCountsAttr([4])
+    card.CreateFaceVertexIndicesAttr([0, 3, 2, 1])
+    card.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    card.CreateExtentAttr([(-1.5, 0.0, -1.0), (1.5, 0.0, 1.0)])
+    mat = UsdShade.Material.Define(stage, "/Demo/Looks/Card")
+    sh = UsdShade.Shader.Define(stage, "/Demo/Looks/Card/Surface")
+    sh.CreateIdAttr("UsdPreviewSurface")
+    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.35, 0.35, 0.35))
+    sh.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.8)
+    mat.CreateSurfaceOutput().ConnectToSource(sh.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(mat)
+
+    cam = UsdGeom.Camera.Define(stage, "/Demo/Camera")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateVerticalApertureAttr(20.25)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    eye, target = Gf.Vec3d(0.0, 1.6, 3.2), Gf.Vec3d(0.0, 0.0, 0.0)
+    view = Gf.Matrix4d().SetLookAt(eye, target, Gf.Vec3d(0.0, 1.0, 0.0))
+    cam.AddTransformOp().Set(view.GetInverse())
+
+    dome = UsdLux.DomeLight.Define(stage, "/Demo/Lights/Sky")
+    dome.CreateIntensityAttr(0.4)
+    key = UsdLux.DistantLight.Define(stage, "/Demo/Lights/Key")
+    key.CreateIntensityAttr(2.5)
+    key.CreateAngleAttr(0.0)
+    # Distant lights shine along their -Z: aim from the upper left front.
+    aim = Gf.Matrix4d().SetLookAt(Gf.Vec3d(-1.0, 2.0, 1.5), Gf.Vec3d(0.0, 0.0, 0.0), Gf.Vec3d(0.0, 1.0, 0.0))
+    UsdGeom.Xformable(key.GetPrim()).AddTransformOp().Set(aim.GetInverse())
+
+    path = out / "demo.usda"
+    stage.GetRootLayer().Export(str(path))
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     out = Path(argv[0]) if argv else Path(__file__).resolve().parent
     out.mkdir(parents=True, exist_ok=True)
-    for p in (make_fibers(out), make_threads(out)):
+    for p in (make_fibers(out), make_threads(out), make_demo(out)):
         print(p)
     return 0
 

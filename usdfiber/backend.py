@@ -41,13 +41,17 @@ def configure_llvm() -> None:
 def mitsuba(variant: str | None = None):
     """Import Mitsuba with a JIT variant selected and return the module.
 
-    ``variant`` defaults to ``$USDFIBER_VARIANT`` or ``llvm_ad_rgb``. Raises RuntimeError
+    ``variant`` defaults to ``$USDFIBER_VARIANT``, else the JIT variant already selected,
+    else ``llvm_ad_rgb``. Raises RuntimeError
     with a readable message when no LLVM library is installed.
     """
     configure_llvm()
     import mitsuba as mi
 
-    wanted = variant or os.environ.get("USDFIBER_VARIANT", "llvm_ad_rgb")
+    # Without an explicit request keep a JIT variant already chosen (e.g. `render --device gpu`).
+    current = mi.variant()
+    keep = current if current and not current.startswith("scalar") else None
+    wanted = variant or os.environ.get("USDFIBER_VARIANT") or keep or "llvm_ad_rgb"
     if mi.variant() != wanted:
         if wanted.startswith("llvm") and not os.environ.get("DRJIT_LIBLLVM_PATH"):
             raise RuntimeError(

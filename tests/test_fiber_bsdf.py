@@ -1,0 +1,271 @@
+"""The tabulated BCSDF in Mitsuba: sampling against evaluation, weights, furnace, one fiber vs table."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import usdfiber  # noqa: F401  (registers schemas first)
+from usdfiber.backend import mitsuba
+from usdfiber.bake import profiles
+from usdfiber.bake.baker import BakeSettings, bake_table
+
+from usdfiber.translators.curves import CurveGeometry, make_curve_shape
+from usdfiber.translators.fiber_bank import FiberBank, FiberSlot, bilinear_integral
+from usdfiber.translators.fiber_bsdf import fiber_bsdf
+
+mi = mitsuba()
+import drjit as dr  # noqa: E402  (after the variant is set)
+
+ETA = 1.55
+
+
+@pytest.fixture(scope="module")
+def circle():
+    return bake_table(profiles.circle(), ETA, 8.0, None, BakeSettings(resolution_deg=10, photons=20000, batches=2))
+
+
+@pytest.fixture(scope="module")
+def silk():
+    prof = profiles.builtin_profiles("silk", 1)[0]
+    return bake_table(prof, ETA, 8.0, None, BakeSettings(resolution_deg=15, photons=1500, batches=2))
+
+
+@pytest.fixture(scope="module")
+def wool():
+    prof = profiles.builtin_profiles("wool", 1)[0]
+    return bake_table(prof, ETA, 8.0, (3.0, 0.03, 0.2), BakeSettings(resolution_deg=30, photons=1500, batches=2))
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return [float(x) for x in v / np.linalg.norm(v)]
+
+
+def _si(n, wi, prim=0):
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(*wi)
+    # Mitsuba's curves: the shading frame's t is the fiber tangent (here +y).
+    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+    si.prim_index = prim
+    return si
+
+
+def _ctx(null: bool):
+    ctx = mi.BSDFContext()
+    if not null:
+        ctx.type_mask = int(mi.BSDFFlags.Glossy)
+    return ctx
+
+
+def _bsdf(slots, psi=0.4, pass_through=True):
+    bank = FiberBank.build(slots)
+    return fiber_bsdf(mi, bank, [0], [psi], np.array([[1.0, 0.0, 0.0]]), pass_through=pass_through)
+
+
+# ---------------------------------------------------------------------------------------------
+# Layout
+# ---------------------------------------------------------------------------------------------
+
+def test_bank_slices_normalized_and_mirrored(silk, circle):
+    bank = FiberBank.build([FiberSlot(silk, (0.0, 0.0, 0.0)), FiberSlot(circle, (0.0, 0.0, 0.0))])
+    for fam in bank.families.values():
+        assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=1e-5)
+        # Extruded fibers: the slice at -theta_v is the mirror (theta_l -> -theta_l) of +theta_v.
+        n = fam.pdf.shape[1]
+        assert np.allclose(fam.pdf[:, 0], fam.pdf[:, n - 1, :, ::-1], atol=1e-7)
+        # phi wraps: the last column repeats the first.
+        assert np.array_equal(fam.pdf[..., 0], fam.pdf[..., -1])
+    assert bank.families[False].f.shape[-1] == 3
+
+
+def test_bank_resamples_other_resolutions(circle):
+    # A table of another resolution is resampled onto the family grid with its own interpolation.
+    coarse = bake_table(profiles.circle(), ETA, 8.0, None, BakeSettings(resolution_deg=15, photons=8000, batches=2))
+    bank = FiberBank.build([FiberSlot(circle, (0.0, 0.0, 0.0)), FiberSlot(coarse, (0.0, 0.0, 0.0))])
+    fam = bank.families[True]
+    assert fam.resolution_deg == 10.0
+    assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=1e-5)
+    # Both describe the same fiber: the slices agree to the tables' noise and resolution.
+    a, b = fam.pdf[0].astype(np.float64), fam.pdf[1].astype(np.float64)
+    assert np.abs(a - b).sum() / np.abs(a).sum() < 0.35
+
+
+# ---------------------------------------------------------------------------------------------
+# Sampling against evaluation
+# ---------------------------------------------------------------------------------------------
+
+CHI2_CASES = [
+    ("circle", (0.0, 0.0, 0.0), (0.3, 0.5, 0.81)),
+    ("circle", (0.0, 0.0, 0.0), (0.9, -0.1, 0.4)),
+    ("silk", (0.0, 0.0, 0.0), (0.3, 0.5, 0.81)),
+    ("silk", (1.0, 3.0, 8.0), (0.7, -0.2, 0.5)),
+    ("wool", (0.0, 0.0, 0.0), (0.2, -0.7, 0.6)),
+    ("wool", (0.0, 0.0, 0.0), (0.6, 0.6, 0.5)),
+]
+
+
+@pytest.mark.parametrize("name,sigma,wi", CHI2_CASES)
+def test_chi2_sampling_matches_pdf(request, name, sigma, wi):
+    table = request.getfixturevalue(name)
+    b = _bsdf([FiberSlot(table, sigma)])
+    wi = _unit(wi)
+
+    def sample(s):
+        bs, _ = b.sample(_ctx(False), _si(dr.width(s), wi), s[0], mi.Vector2f(s[1], s[2]))
+        return bs.wo
+
+    def pdf(wo):
+        return b.pdf(_ctx(False), _si(dr.width(wo), wi), wo)
+
+    test = mi.chi2.ChiSquareTest(domain=mi.chi2.SphericalDomain(), sample_func=sample, pdf_func=pdf,
+                                 sample_dim=3, sample_count=300_000, res=41, ires=16)
+    assert test.run(), test.messages
+
+
+@pytest.mark.parametrize("name", ["circle", "silk", "wool"])
+def test_sample_weight_mean_is_albedo(request, name):
+    """E[weight] = Lambda(omega_v): the sampled BSDF conserves exactly the table's energy."""
+    table = request.getfixturevalue(name)
+    n = 200_000
+    rng = np.random.default_rng(3)
+    for sigma in ((0.0, 0.0, 0.0), (0.5, 2.0, 6.0)):
+        b = _bsdf([FiberSlot(table, sigma)], psi=0.0, pass_through=False)
+        wi = _unit(rng.normal(size=3))
+        si = _si(n, wi)
+        s1 = mi.Float(rng.random(n).astype(np.float32))
+        s2 = mi.Vector2f(mi.Float(rng.random(n).astype(np.float32)), mi.Float(rng.random(n).astype(np.float32)))
+        bs, w = b.sample(_ctx(True), si, s1, s2)
+        val, pdf = b.eval_pdf(_ctx(True), si, bs.wo)
+        w, val, pdf = np.array(w), np.array(val), np.array(pdf)
+        assert np.all(np.isfinite(w)) and np.all(w >= 0)
+        # eval / pdf at the sampled direction is the weight, and the pdf is the sampler's.
+        assert np.allclose(val / pdf[None, :], w, rtol=2e-3, atol=1e-6)
+        assert np.allclose(np.array(bs.pdf), pdf, rtol=2e-3)
+        # Frame of _si with psi = 0: t = +y, x = +x, y = t x x = -z.
+        th_v, ph_v = math.asin(wi[1]), math.atan2(-wi[2], wi[0])
+        albedo = table.recolour(list(sigma)).albedo_at(th_v, ph_v)
+        assert np.allclose(w.mean(axis=1), albedo, rtol=0.01), (w.mean(axis=1), albedo)
+        if sigma == (0.0, 0.0, 0.0):
+            # Undyed: grey weights equal to Lambda (between incoming nodes, the nodes'
+            # Lambda weighted by their p), 1 up to photons stopped by max_bounces.
+            assert np.array_equal(w, np.broadcast_to(w[:1], w.shape))
+            assert np.abs(w - 1.0).max() < 2e-3
+        else:
+            # Dyed: the undyed density stays a good proposal (dyes only remove light; the
+            # bilinear representation of each colour is normalized on its own, which lets
+            # a weight exceed 1 by the interpolation error of coarse tables).
+            assert w.max() < 1.5
+            assert w[0].mean() > w[1].mean() > w[2].mean()
+
+
+def test_hard_directions_give_finite_values(silk, circle):
+    b = _bsdf([FiberSlot(silk, (0.0, 0.0, 0.0))])
+    dirs = [(0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.9999999, 1e-4), (1e-7, 1e-7, 1.0), (0.0, 0.0, -1.0)]
+    for wi in dirs:
+        wi = _unit(wi)
+        si = _si(1000, wi)
+        rng = np.random.default_rng(0)
+        s1 = mi.Float(rng.random(1000).astype(np.float32))
+        s2 = mi.Vector2f(mi.Float(rng.random(1000).astype(np.float32)), mi.Float(rng.random(1000).astype(np.float32)))
+        bs, w = b.sample(_ctx(True), si, s1, s2)
+        val, pdf = b.eval_pdf(_ctx(True), si, bs.wo)
+        for arr in (np.array(w), np.array(val), np.array(pdf), np.array(bs.wo)):
+            assert np.all(np.isfinite(arr)), wi
+
+
+def test_pass_through_probability_is_width_over_diameter(silk):
+    b = _bsdf([FiberSlot(silk, (0.0, 0.0, 0.0))], psi=0.0)
+    n = 200_000
+    rng = np.random.default_rng(1)
+    for phi in (0.1, 1.2, 2.5):
+        # Viewer perpendicular to the fiber (theta_v = 0) at azimuth phi from the reference +x.
+        wi = [math.cos(phi), 0.0, -math.sin(phi)]   # frame: t = +y, x = +x, y = t x x = -z
+        si = _si(n, wi)
+        s1 = mi.Float(rng.random(n).astype(np.float32))
+        s2 = mi.Vector2f(mi.Float(rng.random(n).astype(np.float32)), mi.Float(rng.random(n).astype(np.float32)))
+        bs, w = b.sample(_ctx(True), si, s1, s2)
+        null = np.array(bs.sampled_type) == int(mi.BSDFFlags.Null)
+        q = float(silk.width(phi)[()] / silk.baked_diameter_um)
+        assert abs((1.0 - null.mean()) - q) < 4 * math.sqrt(q * (1 - q) / n) + 1e-3
+        assert np.allclose(np.array(bs.wo)[:, null], -np.array(wi)[:, None], atol=1e-6)
+        assert np.allclose(np.array(w)[:, null], 1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+# ---------------------------------------------------------------------------------------------
+
+def _straight_fibers(ys, radius, x_extent=4.0):
+    pts, starts, cur = [], [], []
+    for k, y in enumerate(ys):
+        base = len(pts)
+        xs = np.linspace(-x_extent, x_extent, 6)
+        pts.extend((x, y, 0.0) for x in xs)
+        starts.extend(base + s for s in range(len(xs) - 3))
+        cur.extend([k] * (len(xs) - 3))
+    return CurveGeometry(points=np.array(pts, float), radii=np.full(len(pts), radius),
+                         segment_start=np.array(starts), segment_curve=np.array(cur), curve_count=len(ys))
+
+
+def _ortho(origin, target, up, half, res):
+    to_world = mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up) @ \
+        mi.ScalarTransform4f().scale([half, half, 1.0])
+    return {"type": "orthographic", "to_world": to_world,
+            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": 64}}
+
+
+def test_rendered_white_furnace(circle, silk, wool):
+    """Non-absorbing fibers in a uniform white dome read 1 (all orders of scattering)."""
+    geom = _straight_fibers((-1.0, 0.0, 1.0), 0.3)
+    slots = [FiberSlot(circle, (0.0, 0.0, 0.0)), FiberSlot(silk, (0.0, 0.0, 0.0)), FiberSlot(wool, (0.0, 0.0, 0.0))]
+    seg_slot = np.repeat([0, 1, 2], 3)
+    b = fiber_bsdf(mi, FiberBank.build(slots), seg_slot, np.linspace(0, 5, 9), np.tile([0.0, 0.0, 1.0], (9, 1)))
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 64},
+        "sensor": _ortho([0.0, 3.0, 10.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 2.0, 48),
+        "emitter": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "fibers": make_curve_shape(geom, b)})
+    img = np.array(mi.render(scene, spp=256))
+    assert np.all(np.isfinite(img))
+    # Every pixel (fiber or background) reads 1; the fiber rows are where it matters.
+    assert abs(img.mean() - 1.0) < 0.01
+    assert np.abs(img.mean(axis=(1, 2)) - 1.0).max() < 0.03
+
+
+@pytest.mark.parametrize("name", ["circle", "silk"])
+def test_one_fiber_radiance_matches_table(request, name):
+    """One fiber, one distant light: the footprint-averaged radiance is E sigma / (D cos theta_v)."""
+    table = request.getfixturevalue(name)
+    psi = 0.7
+    geom = _straight_fibers((0.0,), 0.5, x_extent=20.0)
+    b = fiber_bsdf(mi, FiberBank.build([FiberSlot(table, (0.0, 0.0, 0.0))]), [0, 0, 0], [psi] * 3,
+                   np.tile([0.0, 0.0, 1.0], (3, 1)))
+    shape = make_curve_shape(geom, b)
+    # Fiber frame: t = +x; reference z; y = t x z = -y.
+    def world(theta, phi):
+        return np.array([math.sin(theta), -math.cos(theta) * math.sin(phi), math.cos(theta) * math.cos(phi)])
+
+    E = 3.0
+    res = 64
+    for (th_l, ph_l, th_v, ph_v) in [(0.3, 0.2, -0.2, 1.1), (-0.5, 2.0, 0.4, 0.3), (0.1, 3.5, 0.0, 0.9)]:
+        wl, wv = world(th_l, ph_l), world(th_v, ph_v)
+        half = 1.5
+        # The image's vertical axis is perpendicular to the projected fiber axis.
+        up = np.cross(wv, [1.0, 0.0, 0.0])
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "path", "max_depth": 4},
+            "sensor": _ortho((10 * wv).tolist(), [0.0, 0.0, 0.0], up.tolist(), half, res),
+            "light": {"type": "directional", "direction": (-wl).tolist(), "irradiance": {"type": "rgb", "value": E}},
+            "fibers": shape})
+        img = np.array(mi.render(scene, spp=512))[..., 0]
+        pix = 2 * half / res
+        # Radiance times image area per unit length of the projected axis = L_avg * D.
+        l_avg = img.sum(axis=0).mean() * pix / 1.0
+        sigma = table.cross_section(th_l, ph_l, th_v, ph_v, psi=psi)
+        expect = E * float(sigma) / (table.baked_diameter_um * math.cos(th_v))
+        # Tolerance: the table's noise (reciprocity is used by the renderer) and pixel noise.
+        err = float(np.sqrt(np.mean(table.rel_error ** 2)))
+        assert abs(l_avg - expect) <= 4 * err * expect + 0.02 * expect, (th_l, ph_l, th_v, ph_v, l_avg, expect)

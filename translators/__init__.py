@@ -1,0 +1,1 @@
+"""Translators from USD stages to renderers (``usdfiber.translators``)."""

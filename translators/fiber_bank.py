@@ -1,0 +1,240 @@
+"""The tabulated BCSDFs of a render, laid out for the renderer (:class:`FiberBank`).
+
+A render needs, for every *slot* (one cross-section table recoloured for one dye, depth
+of shade and diameter), the reciprocal form of the far-field scattering function
+
+    f(omega_l | omega_v) = Lambda(omega_v) p(omega_l | omega_v)
+
+(``omega_v`` towards the viewer, ``omega_l`` towards the light; see :mod:`usdfiber.bcsdf`),
+and for every *table* the density used to sample ``omega_l``: the undyed ``p0(. | omega_v)``,
+the same for every colour of that table. Dyes only remove light (each bin's photons are
+weighted by ``exp(-sigma_a L) <= 1``), so ``Lambda p <= p0`` bin for bin and the sample
+weight ``f / p0`` stays near or below 1 whatever the colour (each colour's interpolant is
+normalized to its own albedo, exactly, so on coarse grids a weight may exceed 1 by the
+interpolation error).
+
+Both are stored on a grid of nodes at the table's bin centres and interpolated linearly in
+``omega_v`` (theta_v, phi_v) and bilinearly in ``omega_l`` (theta_l, phi_l), which is what
+Mitsuba's ``MarginalContinuous2D`` distributions sample exactly. Coordinates of a slice:
+
+* ``y`` in [0, 1] spans theta from the first to the last bin centre,
+  ``theta = -pi/2 + s/2 + y (pi - s)`` for bin size ``s``; the polar caps beyond the outer
+  centres (``1 - cos(s/2)`` of the sphere each) carry no density;
+* ``x`` in [0, 1] spans phi over one turn from the first bin centre, ``phi = s/2 + 2 pi x``
+  for tables of non-round profiles; for round ones (whose ``p`` depends on
+  ``phi_l - phi_v`` only) ``x = (phi_l - phi_v) / (2 pi)`` modulo 1.
+
+Node values are ``p cos(theta_l)`` (a density per unit theta and phi), normalized so that
+each slice's bilinear interpolant integrates to 1 over the unit square; the density per
+steradian is then ``value / (2 pi (pi - s) cos(theta_l))``. Tables of extruded fibers hold
+``theta_v >= 0`` only: the bank mirrors them (``theta_l -> -theta_l``) so that the
+interpolation across ``theta_v = 0`` matches :class:`~usdfiber.bake.table.BcsdfTable`.
+
+Round and non-round tables form two *families* (different parameterizations); tables of
+one family share one resolution (coarser or finer tables are resampled with their own
+interpolation).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from usdfiber.bake.table import BcsdfTable, Grid, Recoloured
+
+__all__ = ["Family", "FiberBank", "FiberSlot", "bilinear_integral"]
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class FiberSlot:
+    """One table recoloured for one effective absorption (1/um at the baked size, RGB)."""
+
+    table: BcsdfTable
+    sigma_a: tuple[float, float, float]
+
+    @property
+    def key(self) -> tuple:
+        return (id(self.table), self.sigma_a)
+
+
+@dataclass
+class Family:
+    """Node arrays of the tables of one parameterization (see the module docstring).
+
+    ``pdf``: (T, n_tv, n_pv, H, W) float32, one undyed sampling density per table;
+    ``f``: (S, n_tv, n_pv, H, W, 3) float32, ``Lambda p`` per slot and channel;
+    ``slot_table``: (S,) the table (index into ``pdf``) of each slot.
+    ``theta_v``: the theta_v nodes (radians, increasing); ``phi_v``: the phi_v nodes
+    (one node for round tables; otherwise one turn plus the first node repeated).
+    """
+
+    round: bool
+    resolution_deg: float
+    theta_v: np.ndarray
+    phi_v: np.ndarray
+    pdf: np.ndarray
+    f: np.ndarray
+    slot_table: np.ndarray
+
+    @property
+    def step(self) -> float:
+        return math.radians(self.resolution_deg)
+
+    @property
+    def theta_span(self) -> float:
+        """pi - s: the theta range the y coordinate spans."""
+        return math.pi - self.step
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return tuple(self.pdf.shape[1:])  # type: ignore[return-value]
+
+    def nbytes(self) -> int:
+        return int(self.pdf.nbytes + self.f.nbytes)
+
+
+def bilinear_integral(values: np.ndarray) -> np.ndarray:
+    """Integral over the unit square of the bilinear interpolant of node values (..., H, W)."""
+    h, w = values.shape[-2:]
+    wy = np.full(h, 1.0 / (h - 1))
+    wy[[0, -1]] *= 0.5
+    wx = np.full(w, 1.0 / (w - 1))
+    wx[[0, -1]] *= 0.5
+    return np.einsum("...hw,h,w->...", values, wy, wx)
+
+
+def _band_to_rows(rec: Recoloured) -> np.ndarray:
+    """The recoloured p on all theta_o rows: (n_ti, n_pi, n_to, n_po, C) float64."""
+    t = rec.table
+    g = t.grid
+    n_ti, n_pi, n_b, n_po, n_c = rec.p.shape
+    out = np.zeros((n_ti, n_pi, g.n_theta_o, n_po, n_c))
+    rows = t.band_start[..., None].astype(np.int64) + np.arange(n_b)
+    ti, pi = np.meshgrid(np.arange(n_ti), np.arange(n_pi), indexing="ij")
+    out[ti[..., None], pi[..., None], rows] = rec.p
+    return out
+
+
+def _native_nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
+    """p at the bank's nodes from a table on the same grid: (n_tv, n_pv, H, W, C), albedo.
+
+    Mirrors theta_v for extruded tables, wraps phi_l (and phi_v for non-round tables).
+    """
+    g = rec.grid
+    p = _band_to_rows(rec)
+    alb = rec.albedo.astype(np.float64)
+    if g.theta_symmetric:
+        # Node k < n is the mirror of table node n - 1 - k, with theta_l negated.
+        p = np.concatenate([p[::-1, :, ::-1], p], axis=0)
+        alb = np.concatenate([alb[::-1], alb], axis=0)
+    if not g.phi_invariant:
+        p = np.concatenate([p, p[:, :1]], axis=1)
+        alb = np.concatenate([alb, alb[:, :1]], axis=1)
+    p = np.concatenate([p, p[:, :, :, :1]], axis=3)
+    return p, alb
+
+
+def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """p at the nodes of a grid of bin size ``s`` (radians), with the table's interpolation."""
+    n = int(round(math.pi / s))
+    th_v = -0.5 * math.pi + s * (np.arange(n) + 0.5)
+    th_l = th_v
+    if fam_round:
+        ph_v = np.array([0.0])
+        x = np.linspace(0.0, 1.0, 2 * n + 1)
+        ph_l = x * _TWO_PI                                  # relative to phi_v = 0
+    else:
+        ph_v = 0.5 * s + s * np.arange(2 * n + 1)
+        ph_l = 0.5 * s + np.linspace(0.0, _TWO_PI, 2 * n + 1)
+    TV, PV, TL, PL = np.meshgrid(th_v, ph_v, th_l, ph_l, indexing="ij")
+    if fam_round:
+        PL = PL + PV
+    p = rec.eval_p(TV, PV, TL, PL)
+    alb = rec.albedo_at(th_v[:, None] + 0 * ph_v[None, :], ph_v[None, :] + 0 * th_v[:, None])
+    return p, alb
+
+
+@dataclass
+class FiberBank:
+    """Every slot of a render, grouped into round and non-round families.
+
+    ``slots``: the slots in the order the renderer indexes them. ``resolution_deg``: the
+    node spacing of each family (default: the finest resolution among its tables).
+    """
+
+    slots: Sequence[FiberSlot]
+    families: dict[bool, Family] = field(default_factory=dict)
+    slot_family: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    slot_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    slot_width: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+
+    @classmethod
+    def build(cls, slots: Sequence[FiberSlot], resolution_deg: dict[bool, float] | None = None) -> "FiberBank":
+        """Lay out ``slots`` (``resolution_deg``: {round?: degrees} to override)."""
+        if not slots:
+            raise ValueError("a fiber bank needs at least one slot")
+        bank = cls(list(slots))
+        tables: dict[bool, list[BcsdfTable]] = {True: [], False: []}
+        for sl in bank.slots:
+            fam = sl.table.grid.phi_invariant
+            if not any(t is sl.table for t in tables[fam]):
+                tables[fam].append(sl.table)
+        n = len(bank.slots)
+        bank.slot_family = np.zeros(n, np.int32)
+        bank.slot_index = np.zeros(n, np.int32)
+        for fam_round, tabs in tables.items():
+            if not tabs:
+                continue
+            res = (resolution_deg or {}).get(fam_round) or min(t.grid.resolution_deg for t in tabs)
+            members = [i for i, sl in enumerate(bank.slots) if sl.table.grid.phi_invariant == fam_round]
+            bank.families[fam_round] = _build_family(fam_round, float(res), tabs,
+                                                     [bank.slots[i] for i in members])
+            for k, i in enumerate(members):
+                bank.slot_family[i] = 0 if fam_round else 1
+                bank.slot_index[i] = k
+        # W(phi) / circumscribed diameter: the fraction of a curve's width the profile covers.
+        bank.slot_width = np.stack([np.clip(sl.table.arrays["width"].astype(np.float64)
+                                            / sl.table.baked_diameter_um, 0.0, 1.0)
+                                    for sl in bank.slots]).astype(np.float32)
+        return bank
+
+    def nbytes(self) -> int:
+        return sum(f.nbytes() for f in self.families.values()) + int(self.slot_width.nbytes)
+
+
+def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slots: list[FiberSlot]) -> Family:
+    s = math.radians(res_deg)
+    Grid(res_deg, True, fam_round)  # validates the resolution
+
+    def nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
+        if math.isclose(rec.grid.resolution_deg, res_deg):
+            return _native_nodes(rec)
+        return _resampled_nodes(rec, fam_round, s)
+
+    n_t = int(round(math.pi / s))
+    th_nodes = -0.5 * math.pi + s * (np.arange(n_t) + 0.5)
+    cos_l = np.cos(th_nodes)[None, None, :, None]
+    pdfs = []
+    for t in tables:
+        p0, _ = nodes(t.recolour(0.0))
+        d = p0.mean(axis=-1) * cos_l
+        tot = bilinear_integral(d)
+        pdfs.append(np.where(tot[..., None, None] > 0, d / np.where(tot > 0, tot, 1.0)[..., None, None], 1.0))
+    fs, slot_table = [], []
+    for sl in slots:
+        rec = sl.table.recolour(list(sl.sigma_a))
+        p, alb = nodes(rec)
+        d = p * cos_l[..., None]
+        tot = bilinear_integral(np.moveaxis(d, -1, 0))               # (C, n_tv, n_pv)
+        tot = np.moveaxis(tot, 0, -1)
+        norm = np.where(tot > 0, alb / np.where(tot > 0, tot, 1.0), 0.0)
+        fs.append((d * norm[:, :, None, None, :]).astype(np.float32))
+        slot_table.append(next(i for i, t in enumerate(tables) if t is sl.table))
+    n_pv = pdfs[0].shape[1]
+    phi_v = np.array([0.0]) if fam_round else 0.5 * s + s * np.arange(n_pv)
+    return Family(round=fam_round, resolution_deg=res_deg, theta_v=th_nodes, phi_v=phi_v,
+                  pdf=np.stack(pdfs).astype(np.float32), f=np.stack(fs), slot_table=np.array(slot_table, np.int32))

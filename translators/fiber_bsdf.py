@@ -1,0 +1,389 @@
+"""The tabulated fiber BCSDF as a Mitsuba 3 BSDF plugin (``usdfiber_bcsdf``).
+
+One instance serves every fiber curve of a scene: per curve segment (Mitsuba's
+``si.prim_index``) it knows the slot (cross-section table and colour), the rotation ``psi``
+of the cross section and an azimuthal reference direction (a rotation-minimizing normal of
+the curve).
+
+Far-field convention (``usdfiber.bcsdf``; Mitsuba's ``si.wi`` is the viewer direction
+``omega_v``, the direction it samples or evaluates is the light direction ``omega_l``)
+--------------------------------------------------------------------------------------
+Fiber frame at a hit: ``t`` the curve's unit tangent (``si.sh_frame.t`` on Mitsuba's curves),
+``x`` the segment's reference normal made perpendicular to ``t``, rotated by ``psi`` about
+``t``; ``theta`` with ``sin theta = w . t``, ``phi`` the azimuth from ``x`` towards
+``t x x``. ``eval`` returns the cosine-weighted BSDF Mitsuba expects, which for a far-field
+fiber is
+
+    sigma(omega_l, omega_v) / (W(phi_v) cos theta_v) = Lambda(omega_v) p(omega_l | omega_v)
+
+(reciprocity of the scattering cross section ``sigma``), with no cosine to the tube's
+normal: the far field does not depend on where across the tube the ray hit. ``sample``
+draws ``omega_l`` from the undyed ``p0(. | omega_v)`` (:mod:`usdfiber.translators.fiber_bank`): the
+weight ``Lambda p / p0`` is the albedo for an undyed fiber and near or below 1 for a dyed
+one; its mean is the albedo.
+
+Curves wider than the profile: a curve of width D (the circumscribed diameter) stands
+for a profile that covers only ``W(phi_v)`` of it. A ray meeting the tube interacts with
+probability ``q = W(phi_v) / D`` and otherwise passes straight on (a ``Null`` component),
+so the pixel sees the fiber over ``W`` as it should; ``eval`` and ``pdf`` include the
+factor ``q``. Shadow rays in Mitsuba's integrators treat the tube as opaque: a fiber
+whose ``W`` is below ``D`` casts a shadow as wide as ``D`` (round fibers: exact).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from usdfiber.translators.fiber_bank import Family, FiberBank
+
+__all__ = ["PLUGIN_NAME", "bsdf_class", "fiber_bsdf", "register"]
+
+PLUGIN_NAME = "usdfiber_bcsdf"
+_CLASSES: dict[str, type] = {}
+
+
+def _distribution(mi: Any, fam: Family, data: np.ndarray, n_tables: int):
+    """Mitsuba's conditional 2D distribution over (x, y) for the family's sampling densities.
+
+    Parameters: table index (when more than one), theta_v, phi_v (non-round families).
+    """
+    params: list[list[float]] = []
+    arr = data
+    if n_tables > 1:
+        params.append([float(i) for i in range(n_tables)])
+    else:
+        arr = arr[0]
+    params.append([float(x) for x in fam.theta_v])
+    if not fam.round:
+        params.append([float(x) for x in fam.phi_v])
+    else:
+        arr = arr[..., 0, :, :] if arr.ndim == (5 if n_tables > 1 else 4) else arr
+    cls = {1: mi.MarginalContinuous2D1, 2: mi.MarginalContinuous2D2, 3: mi.MarginalContinuous2D3}[len(params)]
+    return cls(np.ascontiguousarray(arr, dtype=np.float32), params, normalize=True)
+
+
+def bsdf_class(mi: Any) -> type:
+    """The BSDF class for Mitsuba's active variant (defined once per variant)."""
+    variant = mi.variant()
+    if variant in _CLASSES:
+        return _CLASSES[variant]
+    import drjit as dr
+
+    F = mi.Float
+    U = mi.UInt32
+    Flags = mi.BSDFFlags
+
+    def _dev(kind: Any, arr: np.ndarray) -> Any:
+        """A device array that kernels read as data, not as baked-in constants."""
+        x = kind(np.ascontiguousarray(arr))
+        dr.make_opaque(x)
+        return x
+
+    class _FamilyDevice:
+        """A family's arrays on the device."""
+
+        def __init__(self, fam: Family) -> None:
+            self.round = fam.round
+            self.s = fam.step
+            self.span = fam.theta_span
+            t, n_tv, n_pv, h, w = fam.pdf.shape
+            self.n_tv, self.n_pv, self.h, self.w = n_tv, n_pv, h, w
+            self.theta0 = float(fam.theta_v[0])
+            self.slice = h * w
+            self.pdf = _dev(F, fam.pdf.reshape(-1)) if fam.pdf.size else None
+            self.f = _dev(F, fam.f.reshape(-1))
+            self.slot_table = _dev(U, fam.slot_table.astype(np.uint32))
+            self.dist = _distribution(mi, fam, fam.pdf, t)
+            self.n_tables = t
+
+        # -- coordinates --------------------------------------------------------------------
+        def params(self, table: Any, th_v: Any, ph_v: Any) -> list:
+            p = []
+            if self.n_tables > 1:
+                p.append(F(table))
+            p.append(th_v)
+            if not self.round:
+                p.append(self._phi_v(ph_v))
+            return p
+
+        def _phi_v(self, ph_v: Any) -> Any:
+            ph = ph_v - dr.floor(ph_v / (2 * math.pi)) * (2 * math.pi)
+            return dr.select(ph < 0.5 * self.s, ph + 2 * math.pi, ph)
+
+        def to_xy(self, th_l: Any, ph_l: Any, ph_v: Any) -> tuple[Any, Any, Any]:
+            """(x, y, inside) of a light direction."""
+            y = (th_l - self.theta0) / self.span
+            if self.round:
+                d = (ph_l - ph_v) / (2 * math.pi)
+            else:
+                d = (ph_l - 0.5 * self.s) / (2 * math.pi)
+            x = d - dr.floor(d)
+            inside = (y >= 0) & (y <= 1)
+            return x, dr.clip(y, 0.0, 1.0), inside
+
+        def from_xy(self, x: Any, y: Any, ph_v: Any) -> tuple[Any, Any]:
+            th = self.theta0 + y * self.span
+            ph = ph_v + x * 2 * math.pi if self.round else 0.5 * self.s + x * 2 * math.pi
+            return th, ph
+
+        # -- node weights (the same linear interpolation as MarginalContinuous2D) -------------
+        def _lin(self, v: Any, v0: float, step: float, n: int) -> tuple[Any, Any]:
+            if n == 1:
+                return U(0), F(0.0)
+            u = dr.clip((v - v0) / step, 0.0, float(n - 1))
+            k = dr.minimum(U(dr.floor(u)), n - 2)
+            return k, u - F(k)
+
+        def pick_node(self, th_v: Any, ph_v: Any, u: Any) -> tuple[Any, Any, Any]:
+            """An incoming node (theta, phi) drawn with its interpolation weight; reused u."""
+            kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
+            up = u < tt
+            k = kt + dr.select(up, U(1), U(0))
+            u = dr.select(up, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
+            th = self.theta0 + F(k) * self.s
+            if self.round:
+                return th, ph_v, u
+            kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+            up = u < tp
+            j = kp + dr.select(up, U(1), U(0))
+            u = dr.select(up, u / dr.maximum(tp, 1e-12), (u - tp) / dr.maximum(1.0 - tp, 1e-12))
+            return th, 0.5 * self.s + F(j) * self.s, u
+
+        def eval_f(self, slot: Any, th_v: Any, ph_v: Any, x: Any, y: Any, active: Any) -> tuple[Any, Any]:
+            """(Lambda p per channel, p0) in (x, y) density, interpolated like the sampler."""
+            kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
+            if self.round:
+                kp, tp = U(0), F(0.0)
+            else:
+                kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+            fx = x * (self.w - 1)
+            fy = y * (self.h - 1)
+            i = dr.minimum(U(dr.floor(fx)), self.w - 2)
+            j = dr.minimum(U(dr.floor(fy)), self.h - 2)
+            ax, ay = fx - F(i), fy - F(j)
+            table = dr.gather(U, self.slot_table, slot, active)
+            rgb = mi.Color3f(0.0)
+            pdf = F(0.0)
+            n_pv_nodes = 1 if self.round else 2
+            for dt, wt in ((0, 1.0 - tt), (1, tt)):
+                for dp, wp in ((0, 1.0 - tp), (1, tp))[:n_pv_nodes]:
+                    sl = (kt + dt) * self.n_pv + (kp + dp)
+                    for dj, wy in ((0, 1.0 - ay), (1, ay)):
+                        for di, wx in ((0, 1.0 - ax), (1, ax)):
+                            cell = sl * self.slice + (j + dj) * self.w + (i + di)
+                            wgt = wt * wp * wy * wx
+                            fi = slot * (self.n_tv * self.n_pv * self.slice) + cell
+                            rgb += wgt * dr.gather(mi.Color3f, self.f, fi, active)
+                            pi = table * (self.n_tv * self.n_pv * self.slice) + cell
+                            pdf += wgt * dr.gather(F, self.pdf, pi, active)
+            return rgb, pdf
+
+    class FiberBcsdf(mi.BSDF):
+        """Tabulated far-field fiber BCSDF (see the module docstring)."""
+
+        def __init__(self, props: Any) -> None:
+            super().__init__(props)
+            self._fam: list[_FamilyDevice | None] = [None, None]
+            self._ready = False
+            self._set_flags(False)
+
+        def _set_flags(self, null: bool) -> None:
+            glossy = (Flags.GlossyReflection | Flags.GlossyTransmission | Flags.FrontSide
+                      | Flags.BackSide)
+            comps = [glossy]
+            if null:
+                comps.append(Flags.Null | Flags.FrontSide | Flags.BackSide)
+            flags = comps[0]
+            for c in comps[1:]:
+                flags = flags | c
+            self.m_components = comps
+            self.m_flags = flags
+
+        # ---- data --------------------------------------------------------------------------
+        def set_fibers(self, bank: FiberBank, seg_slot: np.ndarray, seg_psi: np.ndarray,
+                       seg_ref: np.ndarray, pass_through: bool = True) -> None:
+            """Give the BSDF its tables and per-segment data (slot, psi in radians, reference)."""
+            n = len(seg_slot)
+            if not (len(seg_psi) == n and seg_ref.shape == (n, 3)):
+                raise ValueError("per-segment arrays differ in length")
+            if n and (seg_slot.min() < 0 or seg_slot.max() >= len(bank.slots)):
+                raise ValueError("segment slot index out of range")
+            self._fam = [(_FamilyDevice(bank.families[r]) if r in bank.families else None)
+                         for r in (True, False)]
+            self._slot_family = _dev(U, bank.slot_family.astype(np.uint32))
+            self._slot_index = _dev(U, bank.slot_index.astype(np.uint32))
+            self._n_w = int(bank.slot_width.shape[1])
+            self._width = _dev(F, bank.slot_width.reshape(-1))
+            self._seg_slot = _dev(U, seg_slot.astype(np.uint32))
+            self._seg_psi = _dev(F, seg_psi.astype(np.float32))
+            self._seg_ref = mi.Vector3f(*(_dev(F, np.ascontiguousarray(seg_ref[:, k], np.float32))
+                                          for k in range(3)))
+            self._pass = bool(pass_through) and bool(np.any(bank.slot_width < 0.999))
+            self._set_flags(self._pass)
+            self._ready = True
+
+        # ---- frame -------------------------------------------------------------------------
+        def _frame(self, si: Any, active: Any) -> tuple[Any, Any, Any, Any]:
+            """(t, x, y, slot): the fiber frame at the hit, x rotated by psi."""
+            seg = si.prim_index
+            slot = dr.gather(U, self._seg_slot, seg, active)
+            psi = dr.gather(F, self._seg_psi, seg, active)
+            ref = dr.gather(mi.Vector3f, self._seg_ref, seg, active)
+            t = dr.normalize(si.sh_frame.t)
+            r = dr.normalize(ref - dr.dot(ref, t) * t)
+            b = dr.cross(t, r)
+            c, s = dr.cos(psi), dr.sin(psi)
+            x = c * r + s * b
+            y = dr.cross(t, x)
+            return t, x, y, slot
+
+        @staticmethod
+        def _angles(w: Any, t: Any, x: Any, y: Any) -> tuple[Any, Any]:
+            th = dr.asin(dr.clip(dr.dot(w, t), -1.0, 1.0))
+            ph = dr.atan2(dr.dot(w, y), dr.dot(w, x))
+            return th, ph
+
+        def _q(self, slot: Any, ph_v: Any, active: Any) -> Any:
+            """Probability that a ray meeting the tube meets the profile: W(phi_v) / D."""
+            if not self._pass:
+                return F(1.0)
+            u = ph_v / (2 * math.pi)
+            u = (u - dr.floor(u)) * self._n_w
+            j0 = dr.minimum(U(dr.floor(u)), self._n_w - 1)
+            a = u - F(j0)
+            j1 = dr.select(j0 + 1 == self._n_w, 0, j0 + 1)
+            base = slot * self._n_w
+            w0 = dr.gather(F, self._width, base + j0, active)
+            w1 = dr.gather(F, self._width, base + j1, active)
+            return (1.0 - a) * w0 + a * w1
+
+        def _eval_pdf_world(self, si: Any, wl: Any, active: Any) -> tuple[Any, Any, Any]:
+            """(Lambda p per channel, p0 per steradian, q) of the light direction ``wl`` (world)."""
+            t, x, y, slot = self._frame(si, active)
+            wv = si.to_world(si.wi)
+            th_v, ph_v = self._angles(wv, t, x, y)
+            th_l, ph_l = self._angles(wl, t, x, y)
+            fam_id = dr.gather(U, self._slot_family, slot, active)
+            k = dr.gather(U, self._slot_index, slot, active)
+            val = mi.Color3f(0.0)
+            pdf = F(0.0)
+            for fid, fam in enumerate(self._fam):
+                if fam is None:
+                    continue
+                m = active & (fam_id == fid)
+                xx, yy, inside = fam.to_xy(th_l, ph_l, ph_v)
+                m = m & inside
+                rgb, p = fam.eval_f(k, th_v, ph_v, xx, yy, m)
+                jac = 1.0 / (2 * math.pi * fam.span * dr.maximum(dr.cos(th_l), 1e-7))
+                val = dr.select(m, rgb * jac, val)
+                pdf = dr.select(m, p * jac, pdf)
+            q = self._q(slot, ph_v, active)
+            return val, pdf, q
+
+        # ---- BSDF interface ----------------------------------------------------------------
+        def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            if not ctx.is_enabled(Flags.GlossyReflection) and not ctx.is_enabled(Flags.GlossyTransmission):
+                return mi.Color3f(0.0)
+            val, _, q = self._eval_pdf_world(si, si.to_world(wo), active)
+            return dr.select(active, q * val, 0.0)
+
+        def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            _, pdf, q = self._eval_pdf_world(si, si.to_world(wo), active)
+            q_eff = q if (self._pass and ctx.is_enabled(Flags.Null, 1)) else 1.0
+            return dr.select(active, q_eff * pdf, 0.0)
+
+        def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+            val, pdf, q = self._eval_pdf_world(si, si.to_world(wo), active)
+            q_eff = q if (self._pass and ctx.is_enabled(Flags.Null, 1)) else 1.0
+            return dr.select(active, q * val, 0.0), dr.select(active, q_eff * pdf, 0.0)
+
+        def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
+            bs = dr.zeros(mi.BSDFSample3f)
+            t, x, y, slot = self._frame(si, active)
+            wv = si.to_world(si.wi)
+            th_v, ph_v = self._angles(wv, t, x, y)
+            q = self._q(slot, ph_v, active)
+            use_null = self._pass and ctx.is_enabled(Flags.Null, 1)
+            use_scatter = ctx.is_enabled(Flags.GlossyReflection) or ctx.is_enabled(Flags.GlossyTransmission)
+            u_pick0 = sample1
+            if use_null and use_scatter:
+                scatter = sample1 < q
+                q_eff = q
+                u_pick0 = dr.minimum(sample1 / dr.maximum(q, 1e-12), 0.99999994)
+            elif use_null:
+                scatter = mi.Bool(False)
+                q_eff = F(1.0)
+            else:
+                scatter = mi.Bool(use_scatter)
+                q_eff = F(1.0)
+
+            fam_id = dr.gather(U, self._slot_family, slot, active)
+            k = dr.gather(U, self._slot_index, slot, active)
+            wl = mi.Vector3f(0.0)
+            weight = mi.Color3f(0.0)
+            pdf = F(0.0)
+            ok = mi.Bool(False)
+            for fid, fam in enumerate(self._fam):
+                if fam is None:
+                    continue
+                m = active & scatter & (fam_id == fid)
+                table = dr.gather(U, fam.slot_table, k, m)
+                # Pick one incoming node with its interpolation weight and sample its slice
+                # exactly: Mitsuba's own interpolation of CDFs between parameter values is
+                # not exactly the interpolated density its pdf reports.
+                node_th, node_ph, u_pick = fam.pick_node(th_v, ph_v, u_pick0)
+                xy, _ = fam.dist.sample(sample2, fam.params(table, node_th, node_ph), m)
+                th_l, ph_l = fam.from_xy(xy.x, xy.y, ph_v)
+                rgb, p = fam.eval_f(k, th_v, ph_v, xy.x, xy.y, m)
+                ct = dr.cos(th_l)
+                d = ct * (dr.cos(ph_l) * x + dr.sin(ph_l) * y) + dr.sin(th_l) * t
+                good = m & (p > 0)
+                wl = dr.select(good, d, wl)
+                weight = dr.select(good, rgb / dr.maximum(p, 1e-30), weight)
+                pdf = dr.select(good, p / (2 * math.pi * fam.span * dr.maximum(ct, 1e-7)), pdf)
+                ok |= good
+            wo = si.to_local(wl)
+            bs.wo = dr.select(ok, wo, -si.wi)
+            bs.pdf = dr.select(ok, q_eff * pdf, 1.0 - q_eff)
+            bs.eta = 1.0
+            bs.sampled_component = dr.select(ok, U(0), U(1))
+            refl = mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(si.wi) > 0
+            glossy = dr.select(refl, U(int(Flags.GlossyReflection)), U(int(Flags.GlossyTransmission)))
+            bs.sampled_type = dr.select(ok, glossy, U(int(Flags.Null)))
+            passed = active & ~scatter & use_null
+            w = dr.select(ok, weight, dr.select(passed, mi.Color3f(1.0), mi.Color3f(0.0)))
+            valid = ok | passed
+            bs.pdf = dr.select(valid, bs.pdf, 0.0)
+            return bs, w
+
+        def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
+            if not self._pass:
+                return mi.Color3f(0.0)
+            t, x, y, slot = self._frame(si, active)
+            _, ph_v = self._angles(si.to_world(si.wi), t, x, y)
+            return mi.Color3f(1.0 - self._q(slot, ph_v, active))
+
+        def to_string(self) -> str:
+            return f"FiberBcsdf[families={[f is not None for f in self._fam]}, pass_through={getattr(self, '_pass', False)}]"
+
+    _CLASSES[variant] = FiberBcsdf
+    return FiberBcsdf
+
+
+def register(mi: Any) -> type:
+    """Register ``usdfiber_bcsdf`` with Mitsuba's active variant; returns the class."""
+    cls = bsdf_class(mi)
+    mi.register_bsdf(PLUGIN_NAME, lambda props: cls(props))
+    return cls
+
+
+def fiber_bsdf(mi: Any, bank: FiberBank, seg_slot: Sequence[int] | np.ndarray, seg_psi: Sequence[float] | np.ndarray,
+               seg_ref: np.ndarray, *, pass_through: bool = True) -> Any:
+    """A ready BSDF for curves whose segments use ``bank``'s slots (one per segment)."""
+    cls = bsdf_class(mi)
+    b = cls(mi.Properties())
+    b.set_fibers(bank, np.asarray(seg_slot), np.asarray(seg_psi, dtype=np.float64), np.asarray(seg_ref, np.float64),
+                 pass_through=pass_through)
+    return b

@@ -1,0 +1,199 @@
+"""Render a USD stage with Mitsuba 3 and the tabulated fiber BCSDF (:func:`render_stage`).
+
+Steps, each timed: validate the stage (the checks of ``usdfiber check``; errors refuse the
+render), resolve the fiber tables (baking missing ones, with progress), translate
+(:mod:`usdfiber.translators.scene`), render in passes (progress and time left), write a
+linear EXR with metadata and a display-referred PNG (:mod:`usdfiber.image_output`).
+
+Passes: the samples per pixel are split into passes of at most ``pass_spp`` samples, each
+with its own seed; the image is their sample-weighted mean, identical in distribution to
+one render with all the samples.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, TextIO
+
+import numpy as np
+
+__all__ = ["DEVICES", "RenderJob", "RenderRefused", "RenderResult", "render_stage", "select_device"]
+
+#: ``--device`` -> Mitsuba variant.
+DEVICES = {"cpu": "llvm_ad_rgb", "gpu": "cuda_ad_rgb"}
+
+
+class RenderRefused(RuntimeError):
+    """The stage cannot be rendered; the message says why (problems as `usdfiber check`)."""
+
+
+@dataclass
+class RenderJob:
+    """Everything a render needs (see ``usdfiber render --help``)."""
+
+    stage: str
+    output: Path
+    png: Path | None = None                 # None: no display image
+    frame: float | None = None
+    resolution: tuple[int, int] | None = None
+    spp: int | None = None
+    camera: str | None = None
+    render_settings: str | None = None
+    device: str = "cpu"
+    threads: int | None = None
+    seed: int = 0
+    max_depth: int = 32
+    purposes: tuple[str, ...] | None = None
+    bake_resolution_deg: float | None = None
+    bake_photons: int | None = None
+    bake_missing: bool = True
+    pass_spp: int = 16
+    half: bool = True
+    view: str | None = None
+    display: str | None = None
+    ocio_config: str | None = None
+    exposure: float = 0.0
+    progress: bool = True
+    warnings_as_errors: bool = False
+
+
+@dataclass
+class RenderResult:
+    image: np.ndarray
+    times: dict[str, float]
+    counts: dict[str, int]
+    warnings: list[str]
+    camera: str
+    spp: int
+    resolution: tuple[int, int]
+    files: list[Path] = field(default_factory=list)
+
+
+def select_device(device: str, threads: int | None = None) -> Any:
+    """Select Mitsuba's variant for ``device`` ("cpu" or "gpu") and the CPU thread count."""
+    from usdfiber.backend import mitsuba
+
+    if device not in DEVICES:
+        raise RenderRefused(f"unknown device {device!r} (choose cpu or gpu)")
+    try:
+        mi = mitsuba(DEVICES[device])
+    except (ImportError, AttributeError, RuntimeError) as exc:
+        hint = " (no CUDA GPU or driver found: use --device cpu)" if device == "gpu" else ""
+        raise RenderRefused(f"cannot use the {device} device: {' '.join(str(exc).split())}{hint}") from None
+    if threads is not None:
+        import drjit as dr
+
+        if threads < 1:
+            raise RenderRefused(f"threads must be >= 1, got {threads}")
+        dr.set_thread_count(int(threads))
+    return mi
+
+
+def _validate(stage: Any, path: str, frame: float | None, strict: bool) -> list[str]:
+    from usdfiber.validation.runner import check_stage
+
+    report = check_stage(stage, time=frame)
+    if report.errors or (strict and report.warnings):
+        raise RenderRefused(f"{path}: the stage does not pass `usdfiber check`; not rendering:\n"
+                            + report.to_text())
+    return [p.to_text() if hasattr(p, "to_text") else str(p) for p in report.warnings]
+
+
+def render_stage(job: RenderJob, log: TextIO = sys.stderr,
+                 bake_progress: Callable[..., Any] | None = None) -> RenderResult:
+    """Run the whole render (see the module docstring); raises RenderRefused with a readable message."""
+    from pxr import Usd
+
+    from usdfiber import image_output
+    from usdfiber.bake.baker import BakeError
+    from usdfiber.stage_io import StageOpenError, open_stage
+
+    times: dict[str, float] = {}
+    t0 = time.perf_counter()
+    mi = select_device(job.device, job.threads)
+    try:
+        stage = open_stage(job.stage)
+    except StageOpenError as exc:
+        raise RenderRefused(str(exc)) from None
+    warnings = _validate(stage, job.stage, job.frame, job.warnings_as_errors)
+    times["validate"] = time.perf_counter() - t0
+
+    from dataclasses import replace
+
+    from usdfiber.translators.scene import RENDER_BAKE_SETTINGS, SceneOptions, TranslateError, translate_stage
+
+    bake = RENDER_BAKE_SETTINGS
+    try:
+        if job.bake_resolution_deg is not None:
+            bake = replace(bake, resolution_deg=float(job.bake_resolution_deg))
+        if job.bake_photons is not None:
+            bake = replace(bake, photons=int(job.bake_photons))
+    except BakeError as exc:
+        raise RenderRefused(str(exc)) from None
+    opts = SceneOptions(time=job.frame, resolution=job.resolution, spp=job.spp, camera=job.camera,
+                        render_settings=job.render_settings, seed=job.seed, max_depth=job.max_depth,
+                        purposes=job.purposes, bake=bake, bake_missing=job.bake_missing)
+    try:
+        tr = translate_stage(stage, opts, progress=bake_progress)
+    except (TranslateError, ValueError, BakeError) as exc:
+        raise RenderRefused(" ".join(str(exc).split()) if "\n" not in str(exc) else str(exc)) from None
+    warnings.extend(tr.warnings)
+    times["tables"] = tr.times.get("tables", 0.0)
+    times["translate"] = tr.times.get("translate", 0.0)
+
+    # ---- render in passes -------------------------------------------------------------------
+    import drjit as dr
+    from tqdm import tqdm
+
+    t1 = time.perf_counter()
+    spp = tr.spp
+    passes = [min(job.pass_spp, spp - k) for k in range(0, spp, max(1, job.pass_spp))]
+    acc = None
+    bar = tqdm(total=spp, unit="spp", desc="render", file=log, disable=not job.progress, dynamic_ncols=True)
+    for k, n in enumerate(passes):
+        img = mi.render(tr.scene, spp=n, seed=job.seed * 100_003 + k)
+        dr.eval(img)
+        arr = np.array(img, dtype=np.float64)[..., :3] * n
+        acc = arr if acc is None else acc + arr
+        bar.update(n)
+    bar.close()
+    image = (acc / spp).astype(np.float32)
+    times["render"] = time.perf_counter() - t1
+
+    # ---- write ------------------------------------------------------------------------------
+    t2 = time.perf_counter()
+    meta: dict[str, Any] = {
+        "stage": os.path.abspath(job.stage), "camera": tr.camera, "spp": int(spp),
+        "frame": "default" if job.frame is None else float(job.frame), "device": job.device,
+        "variant": mi.variant(), "seed": int(job.seed), "max_depth": int(job.max_depth),
+        "fiber_curves": int(tr.counts.get("fiber_curves", 0)),
+        "fiber_segments": int(tr.counts.get("fiber_segments", 0)),
+        "time_tables_s": float(times["tables"]), "time_translate_s": float(times["translate"]),
+        "time_render_s": float(times["render"]),
+    }
+    nonfinite = ~np.isfinite(image)
+    if nonfinite.any():
+        raise RenderRefused(f"{job.stage}: the render produced {int(nonfinite.any(axis=-1).sum())} "
+                            f"pixels that are NaN or infinite; not writing {job.output}")
+    files = []
+    try:
+        image_output.write_exr(job.output, image, meta, half=job.half)
+        files.append(Path(job.output))
+        if job.png is not None:
+            kw: dict[str, Any] = {"exposure_stops": job.exposure, "config": job.ocio_config}
+            if job.view:
+                kw["view"] = job.view
+            if job.display:
+                kw["display"] = job.display
+            image_output.write_display_png(job.png, image, metadata={"stage": meta["stage"],
+                                                                      "camera": tr.camera}, **kw)
+            files.append(Path(job.png))
+    except image_output.ImageOutputError as exc:
+        raise RenderRefused(str(exc)) from None
+    times["write"] = time.perf_counter() - t2
+    times["total"] = time.perf_counter() - t0
+    return RenderResult(image=image, times=times, counts=tr.counts, warnings=warnings, camera=tr.camera,
+                        spp=spp, resolution=tr.resolution, files=files)
