@@ -7,7 +7,7 @@ setup:
 	@bash tools/setup.sh
 
 demo: setup
-	$(PYTHON) -m usdfiber check examples/fibers.usda examples/threads.usda
+	$(PYTHON) -m usdfiber render examples/demo.usda -o build/demo.exr
 
 test: setup
 	$(PYTHON) -m pytest -q

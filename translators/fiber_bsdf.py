@@ -1,7 +1,9 @@
 """The tabulated fiber BCSDF as a Mitsuba 3 BSDF plugin (``usdfiber_bcsdf``).
 
-One instance serves every fiber curve of a scene: per curve segment (Mitsuba's
-``si.prim_index``) it knows the slot (cross-section table and colour), the rotation ``psi``
+After :func:`register`, ``{"type": "usdfiber_bcsdf", "table": "fiber.npz", "mu_a": [r, g, b],
+"diameter_um": 12, "psi_deg": 0}`` gives any Mitsuba scene one fiber table for all its
+curves. The translator instead makes one instance (:func:`fiber_bsdf`) that serves every
+fiber curve of a scene: per curve segment (Mitsuba's ``si.prim_index``) it knows the slot (cross-section table and colour), the rotation ``psi``
 of the cross section and an azimuthal reference direction (a rotation-minimizing normal of
 the curve).
 
@@ -186,8 +188,31 @@ def bsdf_class(mi: Any) -> type:
         def __init__(self, props: Any) -> None:
             super().__init__(props)
             self._fam: list[_FamilyDevice | None] = [None, None]
-            self._ready = False
+            self._per_segment = True
             self._set_flags(False)
+            if "table" in props:
+                self._from_properties(props)
+
+        def _from_properties(self, props: Any) -> None:
+            """Stand-alone use in any Mitsuba scene: one table for every fiber.
+
+            Properties: ``table`` (a baked table file), ``mu_a`` (RGB absorption, 1/um,
+            default 0), ``diameter_um`` (default: the baked diameter), ``psi_deg`` (rotation,
+            default 0), ``pass_through`` (default true). The azimuthal reference is world +z
+            made perpendicular to the tangent (world +x for fibers along z).
+            """
+            from usdfiber.bake.table import BcsdfTable
+            from usdfiber.translators.fiber_bank import FiberSlot
+
+            table = BcsdfTable.load(str(props.get("table")))
+            mu = props.get("mu_a", 0.0)
+            mu = [float(mu)] * 3 if isinstance(mu, (int, float)) else [float(mu[i]) for i in range(3)]
+            diameter = float(props.get("diameter_um", table.baked_diameter_um))
+            sigma = tuple(float(x) for x in table.sigma_for(mu, diameter))
+            bank = FiberBank.build([FiberSlot(table, sigma)])  # type: ignore[arg-type]
+            self.set_fibers(bank, np.zeros(1, np.int64), np.array([math.radians(float(props.get("psi_deg", 0.0)))]),
+                            np.array([[0.0, 0.0, 1.0]]), pass_through=bool(props.get("pass_through", True)))
+            self._per_segment = False
 
         def _set_flags(self, null: bool) -> None:
             glossy = (Flags.GlossyReflection | Flags.GlossyTransmission | Flags.FrontSide
@@ -222,16 +247,20 @@ def bsdf_class(mi: Any) -> type:
                                           for k in range(3)))
             self._pass = bool(pass_through) and bool(np.any(bank.slot_width < 0.999))
             self._set_flags(self._pass)
-            self._ready = True
 
         # ---- frame -------------------------------------------------------------------------
         def _frame(self, si: Any, active: Any) -> tuple[Any, Any, Any, Any]:
             """(t, x, y, slot): the fiber frame at the hit, x rotated by psi."""
-            seg = si.prim_index
+            if not hasattr(self, "_seg_slot"):
+                raise RuntimeError("usdfiber_bcsdf has no table: give it a 'table' property "
+                                   "(a baked table file) or build it with fiber_bsdf()")
+            seg = si.prim_index if self._per_segment else U(0)
             slot = dr.gather(U, self._seg_slot, seg, active)
             psi = dr.gather(F, self._seg_psi, seg, active)
             ref = dr.gather(mi.Vector3f, self._seg_ref, seg, active)
             t = dr.normalize(si.sh_frame.t)
+            if not self._per_segment:
+                ref = dr.select(dr.abs(t.z) > 0.9, mi.Vector3f(1.0, 0.0, 0.0), ref)
             r = dr.normalize(ref - dr.dot(ref, t) * t)
             b = dr.cross(t, r)
             c, s = dr.cos(psi), dr.sin(psi)

@@ -160,6 +160,7 @@ class TableCache:
                 nonlocal resumed
                 if info.get("event") == "start":
                     resumed = int(info.get("resumed", 0))
+                    info = {**info, "label": request.label}
                 if progress is not None:
                     progress(done, total, info)
 
