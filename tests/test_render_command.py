@@ -117,14 +117,14 @@ def test_render_no_bake_names_the_missing_table(tmp_path, capsys, monkeypatch):
     assert "/W/Red" in err and "usdfiber bake" in err
 
 
-def test_yarn_curves_are_refused_clearly(tmp_path, capsys):
+def test_yarn_level_approximation_is_refused_clearly(tmp_path, capsys):
     src = _stage(tmp_path)
     stage = Usd.Stage.Open(str(src))
-    A.apply_yarn(stage.GetPrimAtPath("/W/Blue"), "Skala 360")
+    A.apply_yarn(stage.GetPrimAtPath("/W/Blue"), "Skala 360", expand_fibers=False)
     stage.Save()
     rc = main(["render", str(src), "-o", str(tmp_path / "x.exr"), "--no-progress", *FAST])
     err = capsys.readouterr().err
-    assert rc == 1 and "/W/Blue" in err and "FiberYarnAPI" in err
+    assert rc == 1 and "/W/Blue.yarn:expandFibers" in err and "yarn-level approximation" in err
 
 
 def test_gpu_device_without_cuda_is_a_clear_error(tmp_path, capsys):
@@ -226,3 +226,42 @@ def test_frame_selects_transforms_and_depth_of_shade_without_rebaking():
     # Same geometry: the second frame reuses the baked table (no bake time spent tracing).
     assert tr1.fibers.tables[0].geometry_key == tr2.fibers.tables[0].geometry_key
     assert tr2.times["tables"] < 2.0
+
+
+def _yarn_stage(cam_z: float):
+    """Two CNe 50 yarns, one in front of a camera at distance cam_z, one far to its side."""
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
+    for name, x0 in (("Seen", 0.0), ("Aside", 500.0)):
+        c = UsdGeom.BasisCurves.Define(stage, f"/Y/{name}")
+        c.CreateTypeAttr("cubic")
+        c.CreateBasisAttr("bspline")
+        c.CreatePointsAttr([Gf.Vec3f(x0 + x, 0, 0) for x in (-1.0, -0.5, 0.0, 0.5, 1.0)])
+        c.CreateCurveVertexCountsAttr([5])
+        c.CreateWidthsAttr([0.2415])
+        c.SetWidthsInterpolation("constant")
+        A.apply_yarn(c.GetPrim(), "CNe 50", fiber_preset="polyester")
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateVerticalApertureAttr(36.0)
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, cam_z))
+    return stage
+
+
+def test_yarns_expand_with_culling_and_level_of_detail():
+    near = translate_stage(_yarn_stage(1.0), SceneOptions(resolution=(256, 256), spp=1, bake=FAST_SETTINGS))
+    c = near.counts
+    assert c["yarn_yarns"] == 2 and c["yarn_culled"] == 1      # the yarn aside produces nothing
+    assert c["yarn_fibers"] == c["yarn_fibers_full"] >= 3 * 70   # close up: every fiber and flyaway
+    assert near.fibers.curve_count == c["yarn_fibers"]
+    far = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS))
+    cf = far.counts
+    assert cf["yarn_culled"] == 1 and cf["yarn_fibers"] < cf["yarn_fibers_full"] / 4
+    # Kept fibers are widened so the yarn's projected fiber area stays the same.
+    f_near = near.fibers.geometry.radii.mean()
+    f_far = far.fibers.geometry.radii.mean()
+    assert f_far / f_near == pytest.approx(math.sqrt(cf["yarn_fibers_full"] / cf["yarn_fibers"]), rel=0.15)
+    off = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
+                                                            lod_scale=0.0))
+    assert off.counts["yarn_fibers"] == c["yarn_fibers"]

@@ -32,8 +32,11 @@ from usdfiber.bake.table import BcsdfTable
 from usdfiber.bcsdf import tables_for_prim
 from usdfiber.fiber_params import FiberParams, FiberParamsError
 
-from usdfiber.translators.curves import CurveError, CurveGeometry, concatenate, curves_from_prim, reference_normals
+from usdfiber.translators.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
+                                         reference_normals)
 from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
+from usdfiber.translators.lod import CameraView, fiber_fraction
+from usdfiber.translators.yarns import YarnError, YarnParams, expand_yarn
 
 __all__ = ["FiberTranslation", "TranslateError", "fiber_prim", "translate_fibers"]
 
@@ -59,6 +62,7 @@ class FiberTranslation:
     prims: list[str] = field(default_factory=list)
     tables: list[BcsdfTable] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    yarns: dict[str, int] = field(default_factory=dict)   # yarn expansion and LOD counts
     table_seconds: float = 0.0    # time spent finding, loading and baking tables
 
     @property
@@ -86,11 +90,60 @@ def _fiber_draws(params: FiberParams, path: str, n_curves: int, n_variants: int)
     return variant, np.mod(psi, 2.0 * math.pi)
 
 
+def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each yarn centre curve sampled densely: [(points (M, 3), radii (M,)), ...]."""
+    t = np.linspace(0.0, 1.0, per_segment, endpoint=False)
+    seg = np.arange(geom.segment_count)
+    P, R, _ = evaluate(geom, np.repeat(seg, per_segment), np.tile(t, len(seg)))
+    P = P.reshape(len(seg), per_segment, 3)
+    R = R.reshape(len(seg), per_segment)
+    end_p, end_r, _ = evaluate(geom, seg, np.ones(len(seg)))
+    out = []
+    for c in range(geom.curve_count):
+        ss = seg[geom.segment_curve == c]
+        if len(ss) == 0:
+            continue
+        pts = np.concatenate([P[ss].reshape(-1, 3), end_p[ss[-1:]]])
+        rad = np.concatenate([R[ss].reshape(-1), end_r[ss[-1:]]])
+        out.append((pts, rad))
+    return out
+
+
+def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, view: CameraView | None,
+                  lod_scale: float, instance_id: int) -> tuple[CurveGeometry, dict[str, int]]:
+    """Expand every visible yarn curve of a prim into fiber curves (level of detail: lod.py)."""
+    parts = []
+    stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0}
+    for c, (pts, rad) in enumerate(_yarn_polylines(geom)):
+        stats["yarns"] += 1
+        r = float(rad.max())
+        fraction = 1.0
+        if view is not None:
+            if not view.visible(pts.min(axis=0) - r, pts.max(axis=0) + r):
+                stats["culled"] += 1
+                continue
+            fraction = fiber_fraction(view.pixels(2 * r, pts), yarn.fiber_count, lod_scale=lod_scale)
+        ex = expand_yarn(pts, rad / yarn.yarn_radius, yarn, fiber_fraction=fraction,
+                         seed_offset=instance_id * 1_000_003 + c)
+        stats["fibers"] += ex.curve_count
+        stats["fibers_full"] += int(round(ex.curve_count / fraction))
+        # Fewer fibers are widened to keep the yarn's projected fiber area (lod.py).
+        parts.append(ex.to_curve_geometry(fiber_diameter / math.sqrt(fraction)))
+    if not parts:
+        return CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0), stats
+    return concatenate(parts), stats
+
+
 def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.TimeCode, *,
                      settings: BakeSettings, cache: TableCache | None = None, bake_missing: bool = True,
-                     progress: Callable[..., Any] | None = None) -> FiberTranslation | None:
+                     progress: Callable[..., Any] | None = None, view: CameraView | None = None,
+                     lod_scale: float = 1.0) -> FiberTranslation | None:
     """The fiber curves of ``placements`` (:class:`usdfiber.translators.stage_walk.Placement` of fiber
     prims) with their tables (baked with ``settings`` when missing); None without fibers.
+
+    Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.translators.yarns`)
+    with the level of detail of ``view`` (:mod:`usdfiber.translators.lod`; None: every yarn at
+    full detail).
 
     Raises TranslateError for prims that cannot be rendered (unresolvable fiber values,
     malformed curves, yarn curves, tables that cannot be baked).
@@ -105,19 +158,26 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     warnings: list[str] = []
     prims: list[str] = []
     table_seconds = 0.0
+    yarn_stats: list[dict[str, int]] = []
     um = _scene_units_per_um(stage)
     cache = cache or TableCache()
 
     for pl in placements:
         prim = pl.prim
-        if prim.HasAPI("FiberYarnAPI"):
-            raise TranslateError(
-                f"{pl.path}: FiberYarnAPI yarn curves need fiber expansion, which this version does "
-                f"not render; author fiber curves (FiberAPI only) or remove the yarn API")
         try:
             params = FiberParams.from_prim(prim, time)
         except FiberParamsError as exc:
             raise TranslateError(str(exc)) from None
+        yarn = None
+        if prim.HasAPI("FiberYarnAPI"):
+            try:
+                yarn = YarnParams.from_prim(prim, time)
+            except YarnError as exc:
+                raise TranslateError(str(exc)) from None
+            if not yarn.expand:
+                raise TranslateError(
+                    f"{pl.path}.yarn:expandFibers: false asks for the yarn-level approximation, which "
+                    f"this version does not render; set it to true to expand the yarn into fibers")
         key = (params.geometry_key(), params.table)
         tables = tables_by_key.get(key)
         if tables is None:
@@ -130,10 +190,14 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
             tables_by_key[key] = tables
             all_tables.extend(tables)
         try:
-            geom = curves_from_prim(prim, time, pl.xform, default_width=params.diameter * um)
+            geom = curves_from_prim(prim, time, pl.xform,
+                                    default_width=(2 * yarn.yarn_radius if yarn else params.diameter * um))
         except CurveError as exc:
             raise TranslateError(str(exc)) from None
         warnings.extend(geom.warnings)
+        if yarn is not None:
+            geom, stats = _expand_yarns(geom, yarn, params.diameter * um, view, lod_scale, pl.instance_id)
+            yarn_stats.append(stats)
         if geom.segment_count == 0:
             continue
         variant, psi = _fiber_draws(params, pl.path, geom.curve_count, len(tables))
@@ -157,4 +221,5 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     return FiberTranslation(geometry=geometry, bank=bank, seg_slot=np.concatenate(seg_slot),
                             seg_psi=np.concatenate(seg_psi), seg_ref=reference_normals(geometry),
                             prims=prims, tables=all_tables, warnings=warnings,
-                            table_seconds=table_seconds)
+                            table_seconds=table_seconds,
+                            yarns={k: sum(d[k] for d in yarn_stats) for k in ("yarns", "culled", "fibers", "fibers_full")})

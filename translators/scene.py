@@ -5,6 +5,8 @@ native instances and point instancers expanded by :mod:`usdfiber.translators.sta
 
 * fiber curves (BasisCurves with FiberAPI): one B-spline shape with one tabulated-BCSDF
   instance for all of them (:mod:`usdfiber.translators.fibers`); missing tables are baked first;
+  yarn curves (FiberYarnAPI) are expanded into fibers where the camera sees them, at the
+  detail it resolves (:mod:`usdfiber.translators.yarns`, :mod:`usdfiber.translators.lod`);
 * other BasisCurves: B-spline curves with a grey diffuse BSDF (a warning names them);
 * meshes with their UsdPreviewSurface materials (:mod:`usdfiber.translators.meshes`);
 * UsdLux lights (:mod:`usdfiber.translators.lights`), or a documented default rig when the stage has
@@ -31,6 +33,7 @@ from usdfiber.translators.curves import CurveError, concatenate, curves_from_pri
 from usdfiber.translators.fiber_bsdf import fiber_bsdf
 from usdfiber.translators.fibers import FiberTranslation, TranslateError, fiber_prim, translate_fibers
 from usdfiber.translators.lights import default_light, light_emitter
+from usdfiber.translators.lod import camera_view
 from usdfiber.translators.meshes import mesh_shapes
 from usdfiber.translators.render_settings import RenderSettingsInfo, TranslationError, read_render_settings, stage_bbox
 from usdfiber.translators.stage_walk import walk
@@ -62,6 +65,7 @@ class SceneOptions:
     bake_missing: bool = True
     cache: TableCache | None = None
     pass_through: bool = True
+    lod_scale: float = 1.0                      # yarn level of detail (lod.py); 0: every fiber
 
 
 @dataclass
@@ -142,8 +146,12 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         warnings.append(f"{pl.path}: {pl.prim.GetTypeName()} prims are not translated; skipped")
 
     entries: dict[str, Any] = {"type": "scene"}
+    cam = _find_camera(stage, opt.camera, settings)
+    w, h = resolution
+    view = camera_view(cam, tc, w, h) if cam is not None else None
     fibers = translate_fibers(fiber_placements, stage, tc, settings=opt.bake, cache=opt.cache,
-                              bake_missing=opt.bake_missing, progress=progress)
+                              bake_missing=opt.bake_missing, progress=progress, view=view,
+                              lod_scale=opt.lod_scale)
     times["tables"] = fibers.table_seconds if fibers is not None else 0.0
     counts = {"fiber_prims": len(fiber_placements), "fiber_curves": 0, "fiber_segments": 0,
               "curves_other": 0, "meshes": 0, "lights": 0}
@@ -156,6 +164,8 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         counts["fiber_segments"] = fibers.segment_count
         counts["fiber_slots"] = len(fibers.bank.slots)
         counts["fiber_tables"] = len(fibers.tables)
+        for k, v in fibers.yarns.items():
+            counts[f"yarn_{k}"] = v
     if other_curves:
         parts = []
         for pl in other_curves:
@@ -203,8 +213,6 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
                         "and a distant key light of irradiance pi)")
 
     # ---- camera ---------------------------------------------------------------------------
-    cam = _find_camera(stage, opt.camera, settings)
-    w, h = resolution
     if cam is not None:
         xf = np.array(UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), dtype=np.float64)
         try:

@@ -51,6 +51,7 @@ class RenderJob:
     bake_photons: int | None = None
     bake_missing: bool = True
     pass_spp: int = 16
+    lod_scale: float = 1.0
     half: bool = True
     view: str | None = None
     display: str | None = None
@@ -135,7 +136,8 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
         raise RenderRefused(str(exc)) from None
     opts = SceneOptions(time=job.frame, resolution=job.resolution, spp=job.spp, camera=job.camera,
                         render_settings=job.render_settings, seed=job.seed, max_depth=job.max_depth,
-                        purposes=job.purposes, bake=bake, bake_missing=job.bake_missing)
+                        purposes=job.purposes, bake=bake, bake_missing=job.bake_missing,
+                        lod_scale=job.lod_scale)
     try:
         tr = translate_stage(stage, opts, progress=bake_progress)
     except (TranslateError, ValueError, BakeError) as exc:

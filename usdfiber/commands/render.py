@@ -79,6 +79,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bake-photons", type=_positive_int, metavar="N",
                    help="photons per direction of tables baked for this render (default: 100000)")
     p.add_argument("--no-bake", action="store_true", help="fail instead of baking missing tables")
+    p.add_argument("--lod-scale", type=_finite, default=1.0, metavar="S",
+                   help="yarn level of detail: fibers kept per pixel of yarn width, relative (default 1; "
+                        "0 expands every fiber)")
     p.add_argument("--float", action="store_true", help="write a 32-bit float EXR (default: half)")
     p.add_argument("--view", help="OCIO view of the PNG (see --list-views)")
     p.add_argument("--display", help="OCIO display of the PNG (default: sRGB - Display)")
@@ -122,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                     bake_resolution_deg=args.bake_resolution, bake_photons=args.bake_photons,
                     bake_missing=not args.no_bake, half=not args.float, view=args.view, display=args.display,
                     ocio_config=args.ocio_config, exposure=args.exposure, progress=not args.no_progress,
-                    warnings_as_errors=args.warnings_as_errors)
+                    warnings_as_errors=args.warnings_as_errors, lod_scale=max(0.0, args.lod_scale))
     bake_progress = None if args.no_progress else _bake_progress()
     try:
         res = render_stage(job, bake_progress=bake_progress)
@@ -138,6 +141,9 @@ def run(args: argparse.Namespace) -> int:
           f"{c.get('fiber_curves', 0)} fiber curves ({c.get('fiber_segments', 0)} segments, "
           f"{c.get('fiber_tables', 0)} tables, {c.get('fiber_slots', 0)} colours), "
           f"{c.get('meshes', 0)} meshes, {c.get('lights', 0)} lights")
+    if c.get("yarn_yarns"):
+        print(f"yarns: {c['yarn_yarns']} ({c['yarn_culled']} outside the view), {c['yarn_fibers']} fibers expanded "
+              f"of {c['yarn_fibers_full']} at full detail")
     print(f"time: validate {t['validate']:.2f} s, tables {t['tables']:.2f} s, translate {t['translate']:.2f} s, "
           f"render {t['render']:.2f} s, write {t['write']:.2f} s, total {t['total']:.2f} s")
     for f in res.files:
