@@ -11,7 +11,7 @@ import importlib
 import sys
 
 # Order is the order of ``usdfiber --help``.
-COMMAND_MODULES = ("check", "render", "presets", "bake", "table", "plugin_path")
+COMMAND_MODULES = ("check", "render", "import_curves", "cloth", "presets", "bake", "table", "plugin_path")
 
 
 class UsageError(Exception):
