@@ -183,10 +183,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
             counts["curves_other"] = geom.curve_count
     for k, pl in enumerate(meshes):
         try:
-            shapes, w = mesh_shapes(pl.prim, pl.xform, tc)
+            shapes, mesh_warnings = mesh_shapes(pl.prim, pl.xform, tc)
         except TranslationError as exc:
             raise TranslateError(str(exc)) from None
-        warnings.extend(w)
+        warnings.extend(mesh_warnings)
         for j, sh in enumerate(shapes):
             entries[f"mesh_{k}_{j}"] = sh
         counts["meshes"] += 1
@@ -195,10 +195,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     n_lights = 0
     for k, pl in enumerate(walk(stage, tc, purposes, (UsdLux.BoundableLightBase, UsdLux.NonboundableLightBase))):
         try:
-            entry, w = light_emitter(pl.prim, pl.xform, tc)
+            entry, light_warnings = light_emitter(pl.prim, pl.xform, tc)
         except TranslationError as exc:
             raise TranslateError(str(exc)) from None
-        warnings.extend(w)
+        warnings.extend(light_warnings)
         if entry is not None:
             entries[f"light_{k}"] = entry
             n_lights += 1
