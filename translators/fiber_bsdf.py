@@ -46,24 +46,17 @@ PLUGIN_NAME = "usdfiber_bcsdf"
 _CLASSES: dict[str, type] = {}
 
 
-def _distribution(mi: Any, fam: Family, data: np.ndarray, n_tables: int):
-    """Mitsuba's conditional 2D distribution over (x, y) for the family's sampling densities.
+def _distribution(mi: Any, fam: Family) -> Any:
+    """Mitsuba's 2D distribution over (x, y) of every sampling slice of a family.
 
-    Parameters: table index (when more than one), theta_v, phi_v (non-round families).
+    The slices (table, theta_v node, phi_v node) are flattened into one parameter with
+    integer values: the sampler always asks for one exact slice (it picks the incoming node
+    itself), so no interpolation between slices happens inside Mitsuba and each sample
+    costs the lookups of one slice.
     """
-    params: list[list[float]] = []
-    arr = data
-    if n_tables > 1:
-        params.append([float(i) for i in range(n_tables)])
-    else:
-        arr = arr[0]
-    params.append([float(x) for x in fam.theta_v])
-    if not fam.round:
-        params.append([float(x) for x in fam.phi_v])
-    else:
-        arr = arr[..., 0, :, :] if arr.ndim == (5 if n_tables > 1 else 4) else arr
-    cls = {1: mi.MarginalContinuous2D1, 2: mi.MarginalContinuous2D2, 3: mi.MarginalContinuous2D3}[len(params)]
-    return cls(np.ascontiguousarray(arr, dtype=np.float32), params, normalize=True)
+    t, n_tv, n_pv, h, w = fam.pdf.shape
+    arr = np.ascontiguousarray(fam.pdf.reshape(t * n_tv * n_pv, h, w), dtype=np.float32)
+    return mi.MarginalContinuous2D1(arr, [[float(i) for i in range(t * n_tv * n_pv)]], normalize=True)
 
 
 def bsdf_class(mi: Any) -> type:
@@ -94,22 +87,15 @@ def bsdf_class(mi: Any) -> type:
             self.n_tv, self.n_pv, self.h, self.w = n_tv, n_pv, h, w
             self.theta0 = float(fam.theta_v[0])
             self.slice = h * w
-            self.pdf = _dev(F, fam.pdf.reshape(-1)) if fam.pdf.size else None
-            self.f = _dev(F, fam.f.reshape(-1))
+            # Per slot and node: (Lambda p) RGB and the sampling density of the slot's table,
+            # interleaved so that one 4-wide gather reads both.
+            fp = np.concatenate([fam.f, fam.pdf[fam.slot_table][..., None]], axis=-1)
+            self.fp = _dev(F, fp.reshape(-1))
             self.slot_table = _dev(U, fam.slot_table.astype(np.uint32))
-            self.dist = _distribution(mi, fam, fam.pdf, t)
+            self.dist = _distribution(mi, fam)
             self.n_tables = t
 
         # -- coordinates --------------------------------------------------------------------
-        def params(self, table: Any, th_v: Any, ph_v: Any) -> list:
-            p = []
-            if self.n_tables > 1:
-                p.append(F(table))
-            p.append(th_v)
-            if not self.round:
-                p.append(self._phi_v(ph_v))
-            return p
-
         def _phi_v(self, ph_v: Any) -> Any:
             ph = ph_v - dr.floor(ph_v / (2 * math.pi)) * (2 * math.pi)
             return dr.select(ph < 0.5 * self.s, ph + 2 * math.pi, ph)
@@ -138,20 +124,16 @@ def bsdf_class(mi: Any) -> type:
             k = dr.minimum(U(dr.floor(u)), n - 2)
             return k, u - F(k)
 
-        def pick_node(self, th_v: Any, ph_v: Any, u: Any) -> tuple[Any, Any, Any]:
-            """An incoming node (theta, phi) drawn with its interpolation weight; reused u."""
+        def pick_node(self, table: Any, th_v: Any, ph_v: Any, u: Any) -> Any:
+            """The slice of an incoming node drawn with its interpolation weight (one u)."""
             kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
-            up = u < tt
-            k = kt + dr.select(up, U(1), U(0))
-            u = dr.select(up, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
-            th = self.theta0 + F(k) * self.s
-            if self.round:
-                return th, ph_v, u
-            kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
-            up = u < tp
-            j = kp + dr.select(up, U(1), U(0))
-            u = dr.select(up, u / dr.maximum(tp, 1e-12), (u - tp) / dr.maximum(1.0 - tp, 1e-12))
-            return th, 0.5 * self.s + F(j) * self.s, u
+            k = kt + dr.select(u < tt, U(1), U(0))
+            u = dr.select(u < tt, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
+            j = U(0)
+            if not self.round:
+                kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+                j = kp + dr.select(u < tp, U(1), U(0))
+            return F((table * self.n_tv + k) * self.n_pv + j)
 
         def eval_f(self, slot: Any, th_v: Any, ph_v: Any, x: Any, y: Any, active: Any) -> tuple[Any, Any]:
             """(Lambda p per channel, p0) in (x, y) density, interpolated like the sampler."""
@@ -165,7 +147,6 @@ def bsdf_class(mi: Any) -> type:
             i = dr.minimum(U(dr.floor(fx)), self.w - 2)
             j = dr.minimum(U(dr.floor(fy)), self.h - 2)
             ax, ay = fx - F(i), fy - F(j)
-            table = dr.gather(U, self.slot_table, slot, active)
             rgb = mi.Color3f(0.0)
             pdf = F(0.0)
             n_pv_nodes = 1 if self.round else 2
@@ -176,10 +157,10 @@ def bsdf_class(mi: Any) -> type:
                         for di, wx in ((0, 1.0 - ax), (1, ax)):
                             cell = sl * self.slice + (j + dj) * self.w + (i + di)
                             wgt = wt * wp * wy * wx
-                            fi = slot * (self.n_tv * self.n_pv * self.slice) + cell
-                            rgb += wgt * dr.gather(mi.Color3f, self.f, fi, active)
-                            pi = table * (self.n_tv * self.n_pv * self.slice) + cell
-                            pdf += wgt * dr.gather(F, self.pdf, pi, active)
+                            v = dr.gather(mi.Vector4f, self.fp, slot * (self.n_tv * self.n_pv * self.slice) + cell,
+                                          active)
+                            rgb += wgt * mi.Color3f(v.x, v.y, v.z)
+                            pdf += wgt * v.w
             return rgb, pdf
 
     class FiberBcsdf(mi.BSDF):
@@ -362,8 +343,7 @@ def bsdf_class(mi: Any) -> type:
                 # Pick one incoming node with its interpolation weight and sample its slice
                 # exactly: Mitsuba's own interpolation of CDFs between parameter values is
                 # not exactly the interpolated density its pdf reports.
-                node_th, node_ph, u_pick = fam.pick_node(th_v, ph_v, u_pick0)
-                xy, _ = fam.dist.sample(sample2, fam.params(table, node_th, node_ph), m)
+                xy, _ = fam.dist.sample(sample2, [fam.pick_node(table, th_v, ph_v, u_pick0)], m)
                 th_l, ph_l = fam.from_xy(xy.x, xy.y, ph_v)
                 rgb, p = fam.eval_f(k, th_v, ph_v, xy.x, xy.y, m)
                 ct = dr.cos(th_l)
