@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from bench_common import Timer, json_default as _json_default, md_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -174,43 +175,7 @@ class Record:
               f"({self.doc['wall_seconds']} s; load average before {la[0]}, after {la[1]})")
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(type(o))
 
-
-class Timer:
-    """Wall and process CPU time (all threads) of a block; cores = cpu / wall."""
-
-    def __enter__(self) -> "Timer":
-        self.w0, self.c0 = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.wall = time.perf_counter() - self.w0
-        self.cpu = time.process_time() - self.c0
-
-    @property
-    def cores(self) -> float:
-        return self.cpu / self.wall if self.wall > 0 else 0.0
-
-
-def md_table(headers: list[str], rows: list[list[Any]]) -> str:
-    def cell(v: Any) -> str:
-        if v is None:
-            return "-"
-        return str(v)
-
-    out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    out += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
-    return "\n".join(out)
 
 
 def fmt_pct(x: float | None, digits: int = 2) -> str | None:

@@ -1,13 +1,14 @@
 """Our tabulated BCSDF against Mitsuba 3's built-in ``hair`` BSDF on a smooth round fiber.
 
 Setup: a circular fiber, eta 1.55, Beckmann roughness beta = 2.5 deg, no absorption, baked at
-6 deg with 131,072 photons per incoming direction (1.7 % rms relative L2 noise per direction,
-at most ~3 % near grazing; the bake takes 20-30 s on 2 cores). Mitsuba's ``hair`` (Chiang et al.
-2016) is set up with no pigment, ``scale_tilt`` 0, ``int_ior`` 1.55 and roughnesses matched to
-the same beta (see below). Both are evaluated at the BSDF level, in the local frame both use
-on Mitsuba's curves. Local y is the fiber tangent (``sin theta = w.y``), ``si.wi`` is the
-viewer and ``wo`` the light. Both ``eval`` return the cosine-weighted value, which for both is
-the density ``p(light | viewer)`` per steradian times the albedo (no cosine to the tube's normal).
+6 deg with 131,072 photons per incoming direction and at most 512 bounces per photon (1.7 %
+rms relative L2 noise per direction, at most ~3 % near grazing; the bake takes 20-30 s on
+2 cores). Mitsuba's ``hair`` (Chiang et al. 2016) is set up with no pigment, ``scale_tilt`` 0,
+``int_ior`` 1.55 and roughnesses matched to the same beta (see below). Both are evaluated
+at the BSDF level, in the local frame both use on Mitsuba's curves. Local y is the fiber
+tangent (``sin theta = w.y``), ``si.wi`` is the viewer and ``wo`` the light. Both ``eval``
+return the cosine-weighted value, which for both is the density ``p(light | viewer)`` per
+steradian times the albedo (no cosine to the tube's normal).
 One test renders a fiber on a real ``bsplinecurve`` to check that this frame is the one the
 curves give.
 
@@ -65,8 +66,8 @@ Measured here (printed by ``pytest -s``; theta_v = 3, 21, 30 deg):
   ours-exact 2.7 / 3.5 / 3.5 %; hair-exact 2.0 / 2.6 / 2.5 %;
 * TT peak at 180.0 deg for both. Back-scattering peak |phi_l - phi_v|: ours 14.7 / 9.1 / 0.0
   deg, hair 14.4 / 9.7 / 3.8 deg, exact 16.2 / 10.6 / 4.7 deg;
-* rendered fiber in azimuthal wedges of light, 21 deg: within 2 % of the BSDF-level
-  integrals for both.
+* rendered fiber in azimuthal wedges of light, 21 deg: within 0.3 % of the BSDF-level
+  integrals for ours and 2.8 % for hair (whose grazing edges |h| > 0.98 the camera cuts).
 
 The checks can fail. ``test_checks_detect_wrong_frames`` runs them on a hair evaluation with
 the tangent on local z instead of y, on our BSDF whose frame has the tangent on x, and on a
@@ -98,6 +99,7 @@ ETA = 1.55
 BETA_DEG = 2.5
 RES_DEG = 6.0
 PHOTONS = 131_072
+MAX_BOUNCES = 512      # loses < 1e-4 of the light to trapped grazing paths (albedo 0.99997); 20 % faster
 THETA_V_DEG = (3.0, 21.0, 30.0)        # two table nodes and one halfway between two nodes
 N_PHI = 360                            # phi_l - phi_v columns (1 deg)
 N_GAMMA = 64                           # offsets across the fiber for hair
@@ -134,7 +136,7 @@ def _temp_cache():
 @pytest.fixture(scope="module")
 def table():
     return bake_table(profiles.circle(), ETA, BETA_DEG, None,
-                      BakeSettings(resolution_deg=RES_DEG, photons=PHOTONS, batches=2))
+                      BakeSettings(resolution_deg=RES_DEG, photons=PHOTONS, batches=2, max_bounces=MAX_BOUNCES))
 
 
 @pytest.fixture(scope="module")
@@ -442,7 +444,7 @@ def test_rendered_fiber_matches_bsdf_level_prediction(grids, ours):
         mi.ScalarTransform4f().scale([half, half, 1.0])
     sensor = {"type": "orthographic", "to_world": to_world,
               "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}},
-              "sampler": {"type": "independent", "sample_count": 1024}}
+              "sampler": {"type": "independent", "sample_count": 512}}
     fw = np.abs(np.abs(DPHI) - math.pi) < math.radians(wedge)
     bk = np.abs(DPHI) < math.radians(wedge)
     results = {}
