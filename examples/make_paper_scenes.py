@@ -228,7 +228,7 @@ def fig7_linear_density(kind: str) -> float:
 def make_fig7(out: Path) -> Path:
     """Figure 7: one stockinette swatch per fiber kind, same dye and depth of shade."""
     stage = _new_stage(
-        "Aliaga et al. 2017, Figure 7: the same stockinette (plain knit) swatch, 5 rows of 5 "
+        "Aliaga et al. 2017, Figure 7: the same stockinette (plain knit) swatch, 7 rows of 5 "
         "loops, with cotton, polyester, silk and wool fibers (left to right), all dyed "
         f"{FIG7_DYE} at a depth of shade of {FIG7_DOS:g} %. The yarn is the figure's (one "
         f"ply, {FIG7_TWIST:g} twists per cm) with one ply radius ({FIG7_PLY_RADIUS_MM} mm) "
@@ -241,7 +241,7 @@ def make_fig7(out: Path) -> Path:
     bounds = []
     for kind in FIG7_KINDS:
         name = kind[0].upper() + kind[1:]
-        root = cloth.stockinette(stage, f"/Fig7/{name}", rows=5, loops=5, yarn="CNe 50",
+        root = cloth.stockinette(stage, f"/Fig7/{name}", rows=7, loops=5, yarn="CNe 50",
                                  fiber=kind, dye=FIG7_DYE, depth_of_shade=FIG7_DOS)
         rows = stage.GetPrimAtPath(f"/Fig7/{name}/Rows")
         A.apply_yarn(rows, None, plies=1, fibers_per_ply=fig7_fibers_per_ply(kind),

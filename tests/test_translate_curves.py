@@ -377,7 +377,12 @@ def test_array_built_shape_matches_text_file(mi, tmp_path, combo_stage):
         np.testing.assert_array_equal(ta, tb)
         valid = np.isfinite(ta)
         np.testing.assert_array_equal(np.array(sa.prim_index)[valid], np.array(sb.prim_index)[valid])
-        np.testing.assert_array_equal(np.array(sa.uv)[:, valid], np.array(sb.uv)[:, valid])
+        ua, ub = np.array(sa.uv)[:, valid], np.array(sb.uv)[:, valid]
+        np.testing.assert_array_equal(ua[0], ub[0])
+        # v runs over the whole shape, which has one unreachable guard segment more (see
+        # make_curve_shape): the same curve parameter.
+        n_seg = geom.segment_count
+        np.testing.assert_allclose(ua[1] * (n_seg + 1), ub[1] * n_seg, rtol=1e-5, atol=1e-5 * n_seg)
         np.testing.assert_array_equal(np.array(sa.n)[:, valid], np.array(sb.n)[:, valid])
 
 

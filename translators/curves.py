@@ -517,7 +517,7 @@ def make_curve_shape(geom: CurveGeometry, bsdf: Any = None, shape_id: str = "cur
     mi = mitsuba()
     if geom.segment_count == 0:
         raise ValueError(f"shape {shape_id!r}: no curve segments to build")
-    if len(geom.points) >= 2**32 - 4:
+    if len(geom.points) >= 2**32 - 8:
         raise ValueError(f"shape {shape_id!r}: {len(geom.points)} control points exceed uint32 indices")
     props: dict[str, Any] = {"type": "bsplinecurve", "id": shape_id}
     if bsdf is not None:
@@ -528,12 +528,20 @@ def make_curve_shape(geom: CurveGeometry, bsdf: Any = None, shape_id: str = "cur
             f.write(_SEED_CURVE)
         props["filename"] = seed
         shape = mi.load_dict(props)
-    cp = np.empty((len(geom.points), 4), np.float32)
-    cp[:, :3] = geom.points
-    cp[:, 3] = geom.radii
+    # Mitsuba 3.9.1 recovers a hit's segment as floor(v * segment_count) from the float32 global
+    # parameter v without clamping: a hit at the very end of the last segment rounds v to 1
+    # and reads past the segment buffer (a crash; upstream mitsuba3 PR #1928). A last,
+    # unreachable segment (radius 0 at the first control point) keeps that index in bounds.
+    n = len(geom.points)
+    cp = np.empty((n + 4, 4), np.float32)
+    cp[:n, :3] = geom.points
+    cp[:n, 3] = geom.radii
+    cp[n:, :3] = geom.points[0]
+    cp[n:, 3] = 0.0
+    starts = np.append(geom.segment_start, n).astype(np.uint32)
     params = mi.traverse(shape)
     params["control_points"] = mi.Float(cp.reshape(-1))
-    params["segment_indices"] = mi.UInt32(geom.segment_start.astype(np.uint32))
-    params["control_point_count"] = int(len(geom.points))
+    params["segment_indices"] = mi.UInt32(starts)
+    params["control_point_count"] = int(n + 4)
     params.update()
     return shape
