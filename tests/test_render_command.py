@@ -265,3 +265,18 @@ def test_yarns_expand_with_culling_and_level_of_detail():
     off = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
                                                             lod_scale=0.0))
     assert off.counts["yarn_fibers"] == c["yarn_fibers"]
+
+
+def test_check_warnings_are_reported_as_check_lines(tmp_path, capsys):
+    src = _stage(tmp_path)
+    stage = Usd.Stage.Open(str(src))
+    stage.GetPrimAtPath("/W/Red").GetAttribute("fiber:dye:depthOfShade").Set(6.0)  # beyond the industry range
+    stage.Save()
+    rc = main(["render", str(src), "-o", str(tmp_path / "w.exr"), "--resolution", "8x8", "--spp", "1",
+               "--no-png", "--no-progress", *FAST])
+    err = capsys.readouterr().err
+    assert rc == 0
+    line = next(l for l in err.splitlines() if "fiber:dye:depthOfShade" in l)
+    assert line.startswith("usdfiber: warning: /W/Red.fiber:dye:depthOfShade") and "Problem(" not in line
+    rc = main(["render", str(src), "-o", str(tmp_path / "w.exr"), "--warnings-as-errors", "--no-progress", *FAST])
+    assert rc == 1

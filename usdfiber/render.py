@@ -94,20 +94,18 @@ def select_device(device: str, threads: int | None = None) -> Any:
 
 
 def _validate(stage: Any, path: str, frame: float | None, strict: bool) -> list[str]:
-    from usdfiber.validation.runner import check_stage
+    from usdfiber.validation.runner import check_stage, format_problem
 
     report = check_stage(stage, time=frame)
     if report.errors or (strict and report.warnings):
         raise RenderRefused(f"{path}: the stage does not pass `usdfiber check`; not rendering:\n"
                             + report.to_text())
-    return [p.to_text() if hasattr(p, "to_text") else str(p) for p in report.warnings]
+    return [format_problem(p) for p in report.warnings]
 
 
 def render_stage(job: RenderJob, log: TextIO = sys.stderr,
                  bake_progress: Callable[..., Any] | None = None) -> RenderResult:
     """Run the whole render (see the module docstring); raises RenderRefused with a readable message."""
-    from pxr import Usd
-
     from usdfiber import image_output
     from usdfiber.bake.baker import BakeError
     from usdfiber.stage_io import StageOpenError, open_stage
