@@ -25,13 +25,10 @@ of a run of N photons contains the reference's own noise; both are Monte Carlo e
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
-import platform
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,7 +37,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from bench_common import Timer, json_default as _json_default, md_table  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import Timer, json_default as _json_default, md_table, meminfo_gib  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -74,74 +72,15 @@ SOURCES = ("usdfiber/bake/tracer.py", "usdfiber/bake/reference_tracer.py", "usdf
 # Environment record
 # ---------------------------------------------------------------------------------------------
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _meminfo(key: str) -> float | None:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) / 2**20      # GiB
-    except OSError:
-        pass
-    return None
-
-
 def machine() -> dict[str, Any]:
-    from usdfiber.backend import mitsuba
-
-    mi = mitsuba()
-    import drjit as dr
     import scipy
 
-    return {
-        "cpu_model": _cpu_model(),
-        "cores": os.cpu_count(),
-        "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "ram_gib": round(_meminfo("MemTotal") or 0.0, 1),
-        "ram_available_gib_at_start": round(_meminfo("MemAvailable") or 0.0, 1),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "mitsuba": mi.__version__,
-        "drjit": dr.__version__,
-        "variant": mi.variant(),
-        "drjit_llvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
-        "gpu": "none" if shutil.which("nvidia-smi") is None else "nvidia-smi present (not used)",
-    }
-
-
-def _sha(path: Path) -> str | None:
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-    except OSError:
-        return None
+    return bench_common.machine(scipy=scipy.__version__,
+                                ram_available_gib_at_start=round(meminfo_gib("MemAvailable") or 0.0, 1))
 
 
 def git_state() -> dict[str, Any]:
-    def run(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True,
-                                  timeout=30).stdout
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    return {
-        "head": run("rev-parse", "HEAD").strip(),
-        "modified_sources": [l[3:] for l in run("status", "--porcelain", "--untracked-files=no",
-                                                "--", "usdfiber").splitlines() if l.strip()],
-        "sha256_16": {s: _sha(ROOT / s) for s in SOURCES},
-    }
+    return bench_common.git_state(ROOT, SOURCES, ("usdfiber",))
 
 
 class Record:
@@ -785,7 +724,7 @@ def cmd_recolour(args: argparse.Namespace) -> int:
     for res, sym in sizes:
         n_to, n_po = int(round(180 / res)), int(round(360 / res))
         est = model_nbytes((n_to // 2 if sym else n_to) * n_po, 11, n_to, n_po)
-        avail = (_meminfo("MemAvailable") or 0) * 2**30
+        avail = (meminfo_gib("MemAvailable") or 0) * 2**30
         if est * 2.5 > avail:
             out["timing"].append({"table": f"synthetic {res:g} deg", "skipped": f"needs ~{2.5 * est / 1e9:.1f} GB, "
                                   f"{avail / 1e9:.1f} GB available"})

@@ -1,9 +1,14 @@
 """Helpers shared by the benchmark scripts (run them as `python bench/<name>.py`)."""
 from __future__ import annotations
 
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -42,3 +47,91 @@ def md_table(headers: list[str], rows: list[list[Any]]) -> str:
     out = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     out += ["| " + " | ".join("-" if c is None else str(c) for c in r) + " |" for r in rows]
     return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# The record of where a benchmark ran
+# ---------------------------------------------------------------------------------------------
+
+def cpu_model() -> str:
+    """The CPU's model name (from /proc/cpuinfo where there is one)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def meminfo_gib(key: str) -> float | None:
+    """A /proc/meminfo entry (MemTotal, MemAvailable, ...) in GiB."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    return None
+
+
+def proc_status_mib(key: str, pid: str = "self") -> float | None:
+    """A /proc/<pid>/status entry (VmRSS, VmHWM, ...) in MiB."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def machine(**extra: Any) -> dict[str, Any]:
+    """CPU, memory, versions and the Mitsuba variant, plus ``extra`` entries."""
+    from usdfiber.backend import mitsuba
+
+    mi = mitsuba()
+    import drjit as dr
+
+    return {
+        "cpu_model": cpu_model(),
+        "cores": os.cpu_count(),
+        "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "ram_gib": round(meminfo_gib("MemTotal") or 0.0, 1),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "mitsuba": mi.__version__,
+        "drjit": dr.__version__,
+        "variant": mi.variant(),
+        "drjit_llvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
+        "gpu": "none" if shutil.which("nvidia-smi") is None else "nvidia-smi present (not used)",
+        **extra,
+    }
+
+
+def sha16(path: Path) -> str | None:
+    """The first 16 hex digits of a file's SHA-256, or None if it cannot be read."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    except OSError:
+        return None
+
+
+def git_state(root: Path, sources: Sequence[str], dirs: Sequence[str]) -> dict[str, Any]:
+    """HEAD, the modified tracked files under ``dirs`` and the hashes of ``sources``."""
+    def run(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=30).stdout
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    status = run("status", "--porcelain", "--untracked-files=no", "--", *dirs)
+    return {
+        "head": run("rev-parse", "HEAD").strip(),
+        "modified_sources": [l[3:] for l in status.splitlines() if l.strip()],
+        "sha256_16": {s: sha16(root / s) for s in sources},
+    }

@@ -48,11 +48,9 @@ Parts:
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -64,7 +62,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from bench_common import Timer, json_default as _json_default, md_table as _table  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import Timer, json_default as _json_default, md_table as _table, proc_status_mib  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -83,70 +82,16 @@ FOCAL_MM, APERTURE_MM, TILT_DEG = 50.0, 36.0, 30.0
 # Environment record
 # ---------------------------------------------------------------------------------------------
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _status(key: str, pid: str = "self") -> float | None:
-    """A /proc/<pid>/status entry in MiB (VmRSS, VmHWM, ...)."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return None
-
-
 def _load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
 def machine() -> dict[str, Any]:
-    from usdfiber.backend import mitsuba
-
-    mi = mitsuba()
-    import drjit as dr
-
-    mem = None
-    try:
-        with open("/proc/meminfo") as f:
-            mem = round(int(f.readline().split()[1]) / 2**20, 1)
-    except OSError:
-        pass
-    return {"cpu_model": _cpu_model(), "cores": os.cpu_count(),
-            "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-            "ram_gib": mem, "platform": platform.platform(), "python": platform.python_version(),
-            "numpy": np.__version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "variant": mi.variant(), "gpu": "none" if shutil.which("nvidia-smi") is None else "present (not used)"}
-
-
-def _sha(path: Path) -> str | None:
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-    except OSError:
-        return None
+    return bench_common.machine()
 
 
 def git_state() -> dict[str, Any]:
-    def run(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=30).stdout
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    return {"head": run("rev-parse", "HEAD").strip(),
-            "modified_sources": [l[3:] for l in run("status", "--porcelain", "--untracked-files=no", "--",
-                                                    "usdfiber", "translators").splitlines() if l.strip()],
-            "sha256_16": {s: _sha(ROOT / s) for s in SOURCES}}
+    return bench_common.git_state(ROOT, SOURCES, ("usdfiber", "translators"))
 
 
 def _gib(mib: float | None) -> str:
@@ -291,7 +236,7 @@ class Progress:
         if not self.path:
             return
         rec = {"t": round(time.perf_counter() - self.t0, 2), "stage": stage,
-               "rss_mib": _status("VmRSS"), "hwm_mib": _status("VmHWM"), **kw}
+               "rss_mib": proc_status_mib("VmRSS"), "hwm_mib": proc_status_mib("VmHWM"), **kw}
         with open(self.path, "a") as f:
             f.write(json.dumps(rec, default=_json_default) + "\n")
 
@@ -377,7 +322,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
         _work(job, out, prog)
     except MemoryError:
         out.update(failed="MemoryError", failed_in=traceback.format_exc(limit=-3).splitlines()[-7:],
-                   hwm_mib=_status("VmHWM"))
+                   hwm_mib=proc_status_mib("VmHWM"))
         prog("MemoryError")
     out.update(wall_seconds=time.perf_counter() - t_all, load_end=_load())
     return out
@@ -400,7 +345,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
     prog("imported")
     with Timer() as t:
         stage, info = build_stage(job["spec"])
-    out.update(author_seconds=t.wall, stage=info, hwm_after_stage_mib=_status("VmHWM"))
+    out.update(author_seconds=t.wall, stage=info, hwm_after_stage_mib=proc_status_mib("VmHWM"))
     prog("stage built")
 
     if job.get("validate"):
@@ -467,7 +412,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
     with Timer() as t:
         tr = translate_stage(stage, opts)
     out.update(translate_seconds=t.wall, translate_cores=t.cores, times=tr.times, counts=tr.counts, pieces=pieces,
-               hwm_after_translate_mib=_status("VmHWM"), rss_after_translate_mib=_status("VmRSS"),
+               hwm_after_translate_mib=proc_status_mib("VmHWM"), rss_after_translate_mib=proc_status_mib("VmRSS"),
                yarn_progress=yarn_progress)
     p = pieces
     p["expand_rest"] = p.get("yarn_expansion_total", 0) - p.get("centre_sampling", 0) - p.get("expand_yarn", 0)
@@ -510,7 +455,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
             renders[job["camera"]]["coverage"] = coverage(mi, tr.scene, tr.scene.sensors()[0], mask, z_card)
             np.savez(os.path.join(imgdir, f"{job['tag']}_{job['camera']}.npz"), *imgs, mask=mask)
         prog("rendered")
-    out.update(renders=renders, hwm_mib=_status("VmHWM"))
+    out.update(renders=renders, hwm_mib=proc_status_mib("VmHWM"))
 
 
 def run_worker(job: dict[str, Any], timeout: float = 3600, retries: int = 1) -> dict[str, Any]:
@@ -549,7 +494,7 @@ def _run_worker_once(job: dict[str, Any], timeout: float) -> dict[str, Any]:
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
         proc = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True, env=env)
         while proc.poll() is None:
-            rss = _status("VmRSS", str(proc.pid)) or 0.0
+            rss = proc_status_mib("VmRSS", str(proc.pid)) or 0.0
             if rss > watch or time.perf_counter() - t0 > timeout:
                 killed = f"killed by the bench's watchdog (RSS {rss:.0f} MiB, {time.perf_counter() - t0:.0f} s)"
                 proc.kill()

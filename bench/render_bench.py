@@ -41,12 +41,9 @@ from __future__ import annotations
 
 import argparse
 import gc
-import hashlib
 import json
 import math
 import os
-import platform
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -56,7 +53,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from bench_common import Timer, json_default as _json_default, md_table as _table  # noqa: E402
+import bench_common  # noqa: E402
+from bench_common import Timer, json_default as _json_default, md_table as _table, proc_status_mib  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -80,77 +78,12 @@ SILK_BAKE_RES, SILK_PHOTONS, SILK_BANK_RES = 15.0, 16_384, 6.0
 # Environment record
 # ---------------------------------------------------------------------------------------------
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _proc_status(key: str) -> float | None:
-    """A /proc/self/status entry in MiB (VmRSS, VmHWM, ...)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(key + ":"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return None
-
-
 def machine() -> dict[str, Any]:
-    from usdfiber.backend import mitsuba
-
-    mi = mitsuba()
-    import drjit as dr
-
-    mem = None
-    try:
-        with open("/proc/meminfo") as f:
-            mem = round(int(f.readline().split()[1]) / 2**20, 1)
-    except OSError:
-        pass
-    return {
-        "cpu_model": _cpu_model(),
-        "cores": os.cpu_count(),
-        "cores_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "ram_gib": mem,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "mitsuba": mi.__version__,
-        "drjit": dr.__version__,
-        "variant": mi.variant(),
-        "drjit_llvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
-        "gpu": "none" if shutil.which("nvidia-smi") is None else "nvidia-smi present (not used)",
-    }
-
-
-def _sha(path: Path) -> str | None:
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-    except OSError:
-        return None
+    return bench_common.machine()
 
 
 def git_state() -> dict[str, Any]:
-    def run(*args: str) -> str:
-        try:
-            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=30).stdout
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    return {
-        "head": run("rev-parse", "HEAD").strip(),
-        "modified_sources": [l[3:] for l in run("status", "--porcelain", "--untracked-files=no", "--",
-                                                "usdfiber", "translators").splitlines() if l.strip()],
-        "sha256_16": {s: _sha(ROOT / s) for s in SOURCES},
-    }
+    return bench_common.git_state(ROOT, SOURCES, ("usdfiber", "translators"))
 
 
 def _fmt_s(x: float) -> str:
@@ -574,7 +507,7 @@ class _RssSampler(threading.Thread):
 
     def run(self) -> None:
         while not self.stop:
-            r = _proc_status("VmRSS") or 0.0
+            r = proc_status_mib("VmRSS") or 0.0
             self.peak = max(self.peak, r)
             time.sleep(self.period)
 
@@ -595,10 +528,10 @@ def scale_worker(args: argparse.Namespace) -> None:
     from usdfiber.translators.fiber_bank import FiberBank
     from usdfiber.translators.scene import SceneOptions, translate_stage
 
-    out: dict[str, Any] = {"import_seconds": time.perf_counter() - t_import, "rss_after_import_mib": _proc_status("VmRSS")}
+    out: dict[str, Any] = {"import_seconds": time.perf_counter() - t_import, "rss_after_import_mib": proc_status_mib("VmRSS")}
     with Timer() as t:
         stage, n_seg = _fiber_stage(args.segments)
-    out.update(segments=n_seg, author_seconds=t.wall, rss_after_stage_mib=_proc_status("VmRSS"))
+    out.update(segments=n_seg, author_seconds=t.wall, rss_after_stage_mib=proc_status_mib("VmRSS"))
 
     pieces: dict[str, float] = {}
 
@@ -645,8 +578,8 @@ def scale_worker(args: argparse.Namespace) -> None:
     sampler.stop = True
     sampler.join()
     out.update(translate_seconds=t.wall, translate_cores=t.cores, pieces=pieces, times=tr.times,
-               counts=tr.counts, peak_rss_mib=_proc_status("VmHWM") if cleared else None,
-               peak_rss_sampled_mib=sampler.peak, hwm_reset=cleared, rss_after_translate_mib=_proc_status("VmRSS"))
+               counts=tr.counts, peak_rss_mib=proc_status_mib("VmHWM") if cleared else None,
+               peak_rss_sampled_mib=sampler.peak, hwm_reset=cleared, rss_after_translate_mib=proc_status_mib("VmRSS"))
     out["other_seconds"] = t.wall - sum(pieces.values()) - tr.times.get("tables", 0.0)
     if args.render:
         with Timer() as t:
@@ -656,7 +589,7 @@ def scale_worker(args: argparse.Namespace) -> None:
         a = np.array(img)
         out["render"] = {"seconds": t.wall, "cores": t.cores, "spp": args.spp, "resolution": args.res,
                          "finite": bool(np.all(np.isfinite(a))), "mean": float(a.mean()),
-                         "peak_rss_mib": _proc_status("VmHWM")}
+                         "peak_rss_mib": proc_status_mib("VmHWM")}
     print("RESULT " + json.dumps(out, default=_json_default))
 
 
