@@ -33,13 +33,14 @@ from __future__ import annotations
 
 import functools
 import os
-import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 import PyOpenColorIO as ocio
+
+from usdfiber.atomic_file import write_atomic
 
 __all__ = [
     "DEFAULT_DISPLAY",
@@ -317,54 +318,15 @@ def _oiio_write(filename: str, fmt: str, spec: oiio.ImageSpec, pixels: np.ndarra
 
 
 def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Run ``write(tmp)`` on a temporary file beside ``path``, fsync, rename it over ``path``.
+    """:func:`usdfiber.atomic_file.write_atomic`, with file-system errors as ImageOutputError.
 
     Readers (a viewer polling the output, a comparison script) see the old image or the new
     one, never a partial one; any failure removes the temporary file.
     """
-    directory = path.parent
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+        write_atomic(path, write)
     except OSError as exc:
         raise ImageOutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
-    try:
-        # mkstemp makes 0600 files; an image is for sharing: keep the old file's mode or 0644.
-        try:
-            mode = path.stat().st_mode & 0o777
-        except OSError:
-            mode = 0o644
-        os.fchmod(fd, mode)
-        os.close(fd)
-        write(tmp)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise ImageOutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
-        raise
-    _fsync_dir(directory)
-
-
-def _fsync_dir(directory: Path) -> None:
-    # Make the rename itself durable; not every platform can open a directory.
-    try:
-        dfd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(dfd)
-    except OSError:
-        pass
-    finally:
-        os.close(dfd)
 
 
 @functools.lru_cache(maxsize=8)
