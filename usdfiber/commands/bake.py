@@ -22,31 +22,12 @@ directions are kept and resumed next time).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import warnings
 from typing import Any
 
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return v
+from usdfiber.commands.arg_types import positive_float, positive_int
 
 
 def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -70,19 +51,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="bake the tables of a fiber preset (repeatable)")
     p.add_argument("--params", action="append", default=[], metavar="FILE.json",
                    help="bake the tables of a fiber given as JSON (repeatable)")
-    p.add_argument("--photons", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--photons", type=positive_int, default=None, metavar="N",
                    help="photons per incoming direction (default 1000000; with --target-error "
                         "the first amount)")
-    p.add_argument("--target-error", type=_positive_float, default=None, metavar="E",
+    p.add_argument("--target-error", type=positive_float, default=None, metavar="E",
                    help="trace each direction until the relative L2 error of p is below E "
                         "(e.g. 0.01)")
-    p.add_argument("--max-photons", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--max-photons", type=positive_int, default=None, metavar="N",
                    help="cap per direction with --target-error (default 64000000)")
-    p.add_argument("--resolution", type=_positive_float, default=2.0, metavar="DEG",
+    p.add_argument("--resolution", type=positive_float, default=2.0, metavar="DEG",
                    help="angular bin size in degrees, dividing 90 (default 2, the paper's)")
-    p.add_argument("--batches", type=_positive_int, default=None, metavar="B",
+    p.add_argument("--batches", type=positive_int, default=None, metavar="B",
                    help="independent batches per direction for the error estimate (default 8)")
-    p.add_argument("--max-bounces", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--max-bounces", type=positive_int, default=None, metavar="N",
                    help="interactions before a photon is dropped (default 4096)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--incoming", choices=("centre", "box"), default="centre",
@@ -90,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "over the bin (box: a reciprocal bin-averaged table)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="table cache (default $USDFIBER_CACHE_DIR or ~/.cache/usdfiber)")
-    p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
+    p.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                    help="tables baked at once in separate processes (default 1)")
     p.add_argument("--dry-run", action="store_true",
                    help="list the tables (key, cached or not) without baking")

@@ -17,40 +17,11 @@ Exit status: 0 written, 2 bad parameters or the command line is wrong.
 from __future__ import annotations
 
 import argparse
-import math
+
+from usdfiber.commands.arg_types import finite_float, percentage, positive_int
 
 KNITS = ("stockinette", "garter")
 WEAVES = ("plain", "satin")
-
-
-def _int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return v
-
-
-def _float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
-    return v
-
-
-def _shade(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"must be a percentage >= 0, got {text!r}")
-    return v
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -63,33 +34,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("pattern", choices=KNITS + WEAVES, help="the fabric structure")
     p.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="USD file to write (.usda, .usdc or .usd; overwritten)")
-    p.add_argument("--rows", type=_int, default=None, metavar="N", help="knits: rows (default 8)")
-    p.add_argument("--loops", type=_int, default=None, metavar="N",
+    p.add_argument("--rows", type=positive_int, default=None, metavar="N", help="knits: rows (default 8)")
+    p.add_argument("--loops", type=positive_int, default=None, metavar="N",
                    help="knits: loops per row (default 8)")
-    p.add_argument("--loop-size", type=_float, default=None, metavar="X",
+    p.add_argument("--loop-size", type=finite_float, default=None, metavar="X",
                    help="knits: loop size factor in the fabric plane (default 1)")
-    p.add_argument("--spacing-scale", type=_float, default=None, metavar="X",
+    p.add_argument("--spacing-scale", type=finite_float, default=None, metavar="X",
                    help="knits: row spacing factor (default 1)")
-    p.add_argument("--warps", type=_int, default=None, metavar="N",
+    p.add_argument("--warps", type=positive_int, default=None, metavar="N",
                    help="weaves: warp yarns (default 16 plain, 20 satin)")
-    p.add_argument("--wefts", type=_int, default=None, metavar="N",
+    p.add_argument("--wefts", type=positive_int, default=None, metavar="N",
                    help="weaves: weft yarns (default 16 plain, 20 satin)")
-    p.add_argument("--spacing", type=_float, default=None, metavar="MM",
+    p.add_argument("--spacing", type=finite_float, default=None, metavar="MM",
                    help="weaves: distance between neighbouring yarns in mm "
                         "(default 2.5 yarn diameters)")
-    p.add_argument("--crimp", type=_float, default=None, metavar="X",
+    p.add_argument("--crimp", type=finite_float, default=None, metavar="X",
                    help="weaves: warp/weft depth separation at crossings in yarn diameters "
                         "(default 1)")
-    p.add_argument("--floats", type=_int, default=None, metavar="N",
+    p.add_argument("--floats", type=positive_int, default=None, metavar="N",
                    help="satin: wefts each warp floats over (default 4)")
     p.add_argument("--yarn", default="CNe 50", metavar="YARN",
                    help='Table 3 yarn preset (default "CNe 50")')
     p.add_argument("--fiber-kind", default=None, metavar="FIBER",
                    help="fiber preset for the yarn's fibers (default: the yarn's composition)")
     p.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
-    p.add_argument("--depth-of-shade", type=_shade, default=None, metavar="PERCENT",
+    p.add_argument("--depth-of-shade", type=percentage, default=None, metavar="PERCENT",
                    help="dye depth of shade in percent on weight of fiber")
-    p.add_argument("--min-clearance", type=_float, default=None, metavar="X",
+    p.add_argument("--min-clearance", type=finite_float, default=None, metavar="X",
                    help="smallest allowed distance between yarn centre lines, in yarn "
                         "diameters (default 0.8; 0 disables the check)")
     p.set_defaults(func=run)

@@ -19,34 +19,15 @@ Exit status: 0 written, 2 the file could not be imported or the command line is 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return v
-
-
-def _shade(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"must be a percentage >= 0, got {text!r}")
-    return v
+from usdfiber.commands.arg_types import percentage, positive_float
 
 
 def _width(text: str) -> float | str:
     if text == "fiber":
         return text
-    return _positive(text)
+    return positive_float(text)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -63,15 +44,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="fiber preset (default polyester; with --yarn: the yarn's fibers)")
     p.add_argument("--yarn", default=None, metavar="YARN",
                    help='yarn preset, e.g. "CNe 50": the curves are yarn centre lines')
-    p.add_argument("--units-per-file-unit", type=_positive, default=1.0, metavar="X",
+    p.add_argument("--units-per-file-unit", type=positive_float, default=1.0, metavar="X",
                    help="scene units per file unit (default 1)")
-    p.add_argument("--meters-per-unit", type=_positive, default=0.001, metavar="M",
+    p.add_argument("--meters-per-unit", type=positive_float, default=0.001, metavar="M",
                    help="the stage's metersPerUnit (default 0.001)")
     p.add_argument("--width", type=_width, default=None, metavar="W|fiber",
                    help="constant curve width in scene units, or 'fiber' for the fiber/yarn "
                         "diameter (default: the file's thickness, else the diameter)")
     p.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
-    p.add_argument("--depth-of-shade", type=_shade, default=None, metavar="PERCENT",
+    p.add_argument("--depth-of-shade", type=percentage, default=None, metavar="PERCENT",
                    help="dye depth of shade in percent on weight of fiber")
     p.add_argument("--root", default=None, metavar="NAME",
                    help="name of the default prim (default: the file's name)")

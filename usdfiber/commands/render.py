@@ -19,9 +19,10 @@ unreadable file.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
+
+from usdfiber.commands.arg_types import finite_float, positive_int
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -34,26 +35,6 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
-    return v
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render a stage (EXR + display PNG)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -63,30 +44,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--png", type=Path, metavar="OUT.png", help="display image (default: OUT with .png)")
     p.add_argument("--no-png", action="store_true", help="write the EXR only")
     p.add_argument("--resolution", type=_resolution, metavar="WxH", help="image size in pixels")
-    p.add_argument("--spp", type=_positive_int, help="samples per pixel")
+    p.add_argument("--spp", type=positive_int, help="samples per pixel")
     p.add_argument("--camera", metavar="PATH", help="camera prim to render through")
     p.add_argument("--render-settings", metavar="PATH", help="UsdRender.Settings prim to use")
-    p.add_argument("--frame", type=_finite, metavar="T", help="time code (default: the default time)")
+    p.add_argument("--frame", type=finite_float, metavar="T", help="time code (default: the default time)")
     p.add_argument("--device", choices=("cpu", "gpu"), default="cpu",
                    help="cpu: Mitsuba llvm_ad_rgb; gpu: cuda_ad_rgb (default: cpu)")
-    p.add_argument("--threads", type=_positive_int, help="CPU threads (default: all cores)")
+    p.add_argument("--threads", type=positive_int, help="CPU threads (default: all cores)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default: 0)")
-    p.add_argument("--max-depth", type=_positive_int, default=32, help="longest light path (default: 32)")
+    p.add_argument("--max-depth", type=positive_int, default=32, help="longest light path (default: 32)")
     p.add_argument("--purpose", action="append", choices=("default", "render", "proxy", "guide"),
                    help="purposes to render (repeatable; default: the render settings' or default+render)")
-    p.add_argument("--bake-resolution", type=_finite, metavar="DEG",
+    p.add_argument("--bake-resolution", type=finite_float, metavar="DEG",
                    help="bin size of tables baked for this render (default: 6)")
-    p.add_argument("--bake-photons", type=_positive_int, metavar="N",
+    p.add_argument("--bake-photons", type=positive_int, metavar="N",
                    help="photons per direction of tables baked for this render (default: 100000)")
     p.add_argument("--no-bake", action="store_true", help="fail instead of baking missing tables")
-    p.add_argument("--lod-scale", type=_finite, default=1.0, metavar="S",
+    p.add_argument("--lod-scale", type=finite_float, default=1.0, metavar="S",
                    help="yarn level of detail: fibers kept per pixel of yarn width, relative (default 1; "
                         "0 expands every fiber)")
     p.add_argument("--float", action="store_true", help="write a 32-bit float EXR (default: half)")
     p.add_argument("--view", help="OCIO view of the PNG (see --list-views)")
     p.add_argument("--display", help="OCIO display of the PNG (default: sRGB - Display)")
     p.add_argument("--ocio-config", metavar="CONFIG", help="OCIO config (default: $OCIO or ocio://cg-config-latest)")
-    p.add_argument("--exposure", type=_finite, default=0.0, metavar="STOPS", help="exposure of the PNG in stops")
+    p.add_argument("--exposure", type=finite_float, default=0.0, metavar="STOPS", help="exposure of the PNG in stops")
     p.add_argument("--list-views", action="store_true", help="list the OCIO displays and views and exit")
     p.add_argument("--warnings-as-errors", action="store_true", help="refuse stages with check warnings")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

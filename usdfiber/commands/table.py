@@ -26,26 +26,18 @@ from typing import Any
 
 import numpy as np
 
-
-def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"not a finite number: {text!r}")
-    return v
+from usdfiber.commands.arg_types import finite_float
 
 
 def _nonneg(text: str) -> float:
-    v = _finite(text)
+    v = finite_float(text)
     if v < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
     return v
 
 
 def _positive(text: str) -> float:
-    v = _finite(text)
+    v = finite_float(text)
     if v <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
     return v
@@ -70,9 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     pp = tsub.add_parser("plot", help="write a false-colour log slice of the BCSDF (paper Fig. 3)",
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     pp.add_argument("file", metavar="FILE")
-    pp.add_argument("--theta-i", type=_finite, required=True, metavar="DEG", help="light longitude, degrees")
-    pp.add_argument("--phi-i", type=_finite, required=True, metavar="DEG", help="light azimuth, degrees")
-    pp.add_argument("--psi", type=_finite, default=0.0, metavar="DEG", help="fiber rotation, degrees")
+    pp.add_argument("--theta-i", type=finite_float, required=True, metavar="DEG", help="light longitude, degrees")
+    pp.add_argument("--phi-i", type=finite_float, required=True, metavar="DEG", help="light azimuth, degrees")
+    pp.add_argument("--psi", type=finite_float, default=0.0, metavar="DEG", help="fiber rotation, degrees")
     pp.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
     pp.add_argument("--depth-of-shade", type=_nonneg, default=0.1, metavar="PCT",
                     help="depth of shade in percent (default 0.1)")
