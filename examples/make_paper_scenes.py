@@ -211,6 +211,19 @@ def make_fig11(out: Path) -> Path:
     return path
 
 
+def _hanging_scene(stage: Usd.Stage, root: str, path: Path, width: float, height: float, depth: float, *,
+                   margin: float, card_gap: float, aspect: float, width_fill: float) -> Path:
+    """Cloth centred on the origin in front of a card: card, a camera framing the cloth
+    (``width_fill`` of its width, 1.1 of its height), lights; export to ``path``."""
+    _backdrop(stage, root, -0.5 * width - margin, 0.5 * width + margin, -0.5 * height - margin,
+              0.5 * height + margin, -depth - card_gap)
+    d = _distance_for_width(max(width * width_fill, height * aspect * 1.1))
+    _camera(stage, f"{root}/Camera", (0.0, 0.0, d), (0.0, 0.0, 0.0), aspect)
+    _lights(stage, root, key_from=(-1.0, 1.5, 2.0))
+    stage.GetRootLayer().Export(str(path))
+    return path
+
+
 # ------------------------------------------------------------------------------- Figure 7
 def fig7_fibers_per_ply(kind: str) -> int:
     """Fibers filling a ply of FIG7_PLY_RADIUS_MM at FIG7_PACKING for ``kind``'s diameter."""
@@ -267,15 +280,8 @@ def make_fig7(out: Path) -> Path:
         name = kind[0].upper() + kind[1:]
         op = UsdGeom.Xformable(stage.GetPrimAtPath(f"/Fig7/{name}")).GetOrderedXformOps()[0]
         op.Set(op.Get() - Gf.Vec3d(0.5 * width, 0.5 * height, 0.0))
-    _backdrop(stage, "/Fig7", -0.5 * width - 6.0, 0.5 * width + 6.0, -0.5 * height - 6.0,
-              0.5 * height + 6.0, -depth - 0.6)
-    aspect = 8.0 / 3.0
-    d = _distance_for_width(max(width * 1.05, height * aspect * 1.1))
-    _camera(stage, "/Fig7/Camera", (0.0, 0.0, d), (0.0, 0.0, 0.0), aspect)
-    _lights(stage, "/Fig7", key_from=(-1.0, 1.5, 2.0))
-    path = out / "fig7_swatches.usda"
-    stage.GetRootLayer().Export(str(path))
-    return path
+    return _hanging_scene(stage, "/Fig7", out / "fig7_swatches.usda", width, height, depth,
+                          margin=6.0, card_gap=0.6, aspect=8.0 / 3.0, width_fill=1.05)
 
 
 # ------------------------------------------------------------------------------- Figure 1
@@ -309,15 +315,8 @@ def make_fig1(out: Path) -> Path:
         Gf.Vec3d(x0 - r_sat.GetMin()[0], -r_sat.GetMidpoint()[1], 0.0))
     UsdGeom.Xformable(gar).AddTranslateOp().Set(
         Gf.Vec3d(x0 + w_sat + gap - r_gar.GetMin()[0], -r_gar.GetMidpoint()[1], 0.0))
-    _backdrop(stage, "/Fig1", -0.5 * width - 8.0, 0.5 * width + 8.0, -0.5 * height - 8.0,
-              0.5 * height + 8.0, -depth - 0.8)
-    aspect = 16.0 / 9.0
-    d = _distance_for_width(max(width * 1.06, height * aspect * 1.1))
-    _camera(stage, "/Fig1/Camera", (0.0, 0.0, d), (0.0, 0.0, 0.0), aspect)
-    _lights(stage, "/Fig1", key_from=(-1.0, 1.5, 2.0))
-    path = out / "fig1_satin_garter.usda"
-    stage.GetRootLayer().Export(str(path))
-    return path
+    return _hanging_scene(stage, "/Fig1", out / "fig1_satin_garter.usda", width, height, depth,
+                          margin=8.0, card_gap=0.8, aspect=16.0 / 9.0, width_fill=1.06)
 
 
 # ------------------------------------------------------------------------------- Figure 5
