@@ -21,7 +21,7 @@ import math
 import time as _time
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 from pxr import Usd, UsdGeom
@@ -90,23 +90,21 @@ def _fiber_draws(params: FiberParams, path: str, n_curves: int, n_variants: int)
     return variant, np.mod(psi, 2.0 * math.pi)
 
 
-def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each yarn centre curve sampled densely: [(points (M, 3), radii (M,)), ...]."""
+def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each yarn centre curve sampled densely, one curve at a time: (points (M, 3), radii (M,)).
+
+    Curve by curve, so that memory follows one yarn, not the whole prim; segments are ordered
+    by curve (CurveGeometry), so a curve's segments are one contiguous run.
+    """
     t = np.linspace(0.0, 1.0, per_segment, endpoint=False)
-    seg = np.arange(geom.segment_count)
-    P, R, _ = evaluate(geom, np.repeat(seg, per_segment), np.tile(t, len(seg)))
-    P = P.reshape(len(seg), per_segment, 3)
-    R = R.reshape(len(seg), per_segment)
-    end_p, end_r, _ = evaluate(geom, seg, np.ones(len(seg)))
-    out = []
+    ends = np.cumsum(np.bincount(geom.segment_curve, minlength=geom.curve_count))
     for c in range(geom.curve_count):
-        ss = seg[geom.segment_curve == c]
+        ss = np.arange(ends[c - 1] if c else 0, ends[c])
         if len(ss) == 0:
             continue
-        pts = np.concatenate([P[ss].reshape(-1, 3), end_p[ss[-1:]]])
-        rad = np.concatenate([R[ss].reshape(-1), end_r[ss[-1:]]])
-        out.append((pts, rad))
-    return out
+        P, R, _ = evaluate(geom, np.repeat(ss, per_segment), np.tile(t, len(ss)))
+        end_p, end_r, _ = evaluate(geom, ss[-1:], np.ones(1))
+        yield np.concatenate([P, end_p]), np.concatenate([R, end_r])
 
 
 def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, view: CameraView | None,

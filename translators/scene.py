@@ -203,8 +203,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
             entries[f"light_{k}"] = entry
             n_lights += 1
     counts["lights"] = n_lights
-    bbox = stage_bbox(stage, tc, purposes)
-    lo, hi = bbox if bbox is not None else (np.full(3, -1.0), np.full(3, 1.0))
+    # The stage's bounds only matter to the defaults: no traversal for them otherwise.
+    if n_lights == 0 or cam is None:
+        bbox = stage_bbox(stage, tc, purposes)
+        lo, hi = bbox if bbox is not None else (np.full(3, -1.0), np.full(3, 1.0))
     up = UsdGeom.GetStageUpAxis(stage)
     if n_lights == 0:
         for k, e in enumerate(default_light(lo, hi, up_axis=up)):
