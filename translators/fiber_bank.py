@@ -56,10 +56,6 @@ class FiberSlot:
     table: BcsdfTable
     sigma_a: tuple[float, float, float]
 
-    @property
-    def key(self) -> tuple:
-        return (id(self.table), self.sigma_a)
-
 
 @dataclass
 class Family:
@@ -88,10 +84,6 @@ class Family:
     def theta_span(self) -> float:
         """pi - s: the theta range the y coordinate spans."""
         return math.pi - self.step
-
-    @property
-    def shape(self) -> tuple[int, int, int, int]:
-        return tuple(self.pdf.shape[1:])  # type: ignore[return-value]
 
     def nbytes(self) -> int:
         return int(self.pdf.nbytes + self.f.nbytes)
