@@ -7,10 +7,11 @@
 * **Fiber count from the pixel footprint**: a yarn whose diameter covers ``n_px`` pixels
   keeps the fraction ``min(1, lod_scale * fibers_per_pixel * n_px / fibers)`` of its
   fibers (at least ``min_fibers``), a deterministic subset (:func:`expand_yarn`'s
-  ``fiber_fraction``). Kept fibers are widened by ``1 / sqrt(fraction)`` so that the yarn's
-  projected fiber area, and with it its coverage and brightness, stays that of the full
-  yarn; their optics (diameter, absorption, tables) are unchanged. Flyaways follow the same
-  fraction.
+  ``fiber_fraction``). Kept fibers are widened by ``1 / sqrt(fraction)``, which keeps the
+  yarn's total fiber cross-section area but NOT its coverage or brightness: measured
+  against full expansion the image is 33-54 % too bright at ``lod_scale`` 1 (bench/REPORT.md,
+  "Yarns, cloth and level of detail"). Their optics (diameter, absorption, tables) are
+  unchanged. Flyaways follow the same fraction.
 
 ``lod_scale = 0`` turns the reduction off (every fiber is expanded; culling stays).
 """
