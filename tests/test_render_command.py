@@ -258,7 +258,7 @@ def test_yarns_expand_with_culling_and_level_of_detail():
     far = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS))
     cf = far.counts
     assert cf["yarn_culled"] == 1 and cf["yarn_fibers"] < cf["yarn_fibers_full"] / 4
-    # Kept fibers are widened so the yarn's projected fiber area stays the same.
+    # Kept fibers are widened by 1/sqrt(fraction): the yarn keeps its total fiber cross-section.
     f_near = near.fibers.geometry.radii.mean()
     f_far = far.fibers.geometry.radii.mean()
     assert f_far / f_near == pytest.approx(math.sqrt(cf["yarn_fibers_full"] / cf["yarn_fibers"]), rel=0.15)

@@ -125,7 +125,7 @@ def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, 
                          seed_offset=instance_id * 1_000_003 + c)
         stats["fibers"] += ex.curve_count
         stats["fibers_full"] += int(round(ex.curve_count / fraction))
-        # Fewer fibers are widened to keep the yarn's projected fiber area (lod.py).
+        # Fewer fibers are widened to keep the yarn's total fiber cross-section (lod.py).
         parts.append(ex.to_curve_geometry(fiber_diameter / math.sqrt(fraction)))
     if not parts:
         return CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0), stats
