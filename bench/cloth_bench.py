@@ -270,7 +270,7 @@ def install_widen_variant(exponent: float) -> None:
 
     def _expand_yarns(geom, yarn, fiber_diameter, view, lod_scale, instance_id):
         parts = []
-        stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0}
+        stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0, "far": 0}
         for c, (pts, rad) in enumerate(F._yarn_polylines(geom)):
             stats["yarns"] += 1
             r = float(rad.max())
@@ -285,9 +285,10 @@ def install_widen_variant(exponent: float) -> None:
             stats["fibers"] += ex.curve_count
             stats["fibers_full"] += int(round(ex.curve_count / fraction))
             parts.append(ex.to_curve_geometry(fiber_diameter / fraction ** exponent))
+        none = np.zeros(0, np.int64)
         if not parts:
-            return F.CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0), stats
-        return F.concatenate(parts), stats
+            return F.CurveGeometry(np.zeros((0, 3)), np.zeros(0), none, none, 0), none, stats
+        return F.concatenate(parts), none, stats
 
     F._expand_yarns = _expand_yarns
 
@@ -383,7 +384,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
     if job.get("widen_exponent") is not None:
         install_widen_variant(float(job["widen_exponent"]))
     wrap(F, "curves_from_prim", "usd_read")
-    wrap(F, "_yarn_polylines", "centre_sampling")
+    wrap(F, "_sample_curve", "centre_sampling")
     wrap(F, "expand_yarn", "expand_yarn", count_yarn)
     wrap(F, "_expand_yarns", "yarn_expansion_total")
     wrap(F, "reference_normals", "reference_normals")
@@ -542,7 +543,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     from usdfiber import cloth
     from usdfiber.translators import lod
     from usdfiber.translators.curves import curves_from_prim
-    from usdfiber.translators.fibers import _yarn_polylines
+    from usdfiber.translators.fibers import _pixel_polyline, _yarn_polylines
     from usdfiber.translators.yarns import YarnParams, expand_yarn
 
     n = spec["warps"]
@@ -552,7 +553,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     prim = s2.GetPrimAtPath("/W/Warp")
     yp = YarnParams.from_prim(prim)
     geom = curves_from_prim(prim, Usd.TimeCode.Default(), np.eye(4), default_width=2 * yp.yarn_radius)
-    polys = _yarn_polylines(geom)
+    polys = list(_yarn_polylines(geom))
     spacing = float(polys[1][0][0, 0] - polys[0][0][0, 0])
     # The N x N stage's box, as its authored extents give it (control points +- half width).
     cp = np.array(prim.GetAttribute("points").Get(), np.float64)
@@ -590,14 +591,20 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     for scale in lod_scales:
         curves = segs = 0
         fr_all = []
+        far = 0
         for k, p in shapes:
+            if lod.far_yarn(p, lod_scale=scale):      # one curve with the yarn's far field
+                far += 1
+                pts, rad = polys[k]
+                segs += len(_pixel_polyline(pts, 2 * float(rad.max()) / p)) - 1
+                continue
             fr = lod.fiber_fraction(p, yp.fiber_count, lod_scale=scale)
             fr_all.append(fr)
             c, s = count(k, fr)
             curves += c
             segs += s
-        out["lod"][str(scale)] = {"fiber_curves": curves, "segments": segs,
-                                  "fraction_min_max": [float(min(fr_all)), float(max(fr_all))]}
+        out["lod"][str(scale)] = {"fiber_curves": curves, "segments": segs, "far_yarns": far,
+                                  "fraction_min_max": [float(min(fr_all)), float(max(fr_all))] if fr_all else None}
     c, s = count(0, 1.0)
     out["per_yarn_full"] = {"fiber_curves": c, "segments": s, "fibers": yp.fiber_count,
                             "yarn_length_mm": float(np.linalg.norm(np.diff(polys[0][0], axis=0), axis=1).sum())}
@@ -709,6 +716,8 @@ def image_error(img: list[np.ndarray], ref: list[np.ndarray], mask: np.ndarray, 
 def part_lod(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
     n = args.lod_yarns
     cams = ({"near": 1 / 3, "whole": 1.0} if args.quick else {"near": 1 / 3, "whole": 1.0, "far": 3.0})
+    if args.cameras:
+        cams = {k: v for k, v in cams.items() if k in args.cameras}
     spec = {"name": f"ORA 120 plain weave {n} x {n}", "kind": "weave", "yarn": "ORA 120", "warps": n, "wefts": n,
             "res": [args.lod_res, args.lod_res], "cameras": cams}
     widest = max(cams, key=lambda k: cams[k])
@@ -911,6 +920,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full-cameras", type=lambda s: [x for x in s.split(",") if x], default=["near", "whole"],
                     help="cameras that also render lod_scale 0 translated with their own camera (culling only; "
                          "without culling it is the reference again: a check of the error estimate)")
+    ap.add_argument("--cameras", type=lambda s: [x for x in s.split(",") if x], default=None,
+                    help="LOD cameras to run (of near, whole, far; default all)")
     ap.add_argument("--widen-experiment", type=floats, default=None,
                     help="lod_scale values also run with the experimental 1/fraction widening (default 1; '' for none)")
     args = ap.parse_args(argv)

@@ -3,16 +3,21 @@
     python bench/render_bench.py          # full run (~14 min on 2 shared cores) -> bench/results/render.json
     python bench/render_bench.py --quick  # smoke test (< 1 min), not a benchmark; JSON in $TMPDIR
     python bench/render_bench.py --parts timing,convergence,scale --ref-spp 1024
+    python bench/render_bench.py --parts timing --cases ours_silk,ours_silk_path --out /tmp/t.json
 
 Parts (each prints a markdown table; all numbers go to the JSON with the machine, the load
 average before and after, the git HEAD and the SHA-256 of the renderer's sources):
 
 * ``timing``: time per sample per pixel on IDENTICAL curves. The scene is a mat of 10,000
   straight-ish fibers (B-splines, 5 segments each) in one ``bsplinecurve`` shape, a perspective
-  camera, a constant dome plus a directional light, ``path`` with max_depth 8, 256 x 256.
+  camera, a constant dome plus a directional light, max_depth 8, 256 x 256. The integrator is
+  the one ``translate_stage`` picks for the BSDF: ``volpath`` when it lets rays pass (a
+  ``Null`` component: non-round fibers), else ``path``.
   BSDFs: ``usdfiber_bcsdf`` with a round polyester table and with a non-round silk table,
-  ``hair``, and ``diffuse`` as a floor. Two profiling variants of silk: pass-through off, and
-  the table on its coarse native grid. Timing uses ``dr.eval(img); dr.sync_thread()``. A
+  ``hair``, and ``diffuse`` as a floor. Profiling variants: silk with ``path`` (opaque shadow
+  rays), with pass-through off, and with the table on its coarse native grid; polyester and
+  ``hair`` with ``volpath``. ``--cases`` times a subset (``hair``, the reference of every
+  ratio, always). Timing uses ``dr.eval(img); dr.sync_thread()``. A
   warm-up render comes first, and its kernel compile time (Dr.Jit's kernel history) is reported
   separately. The compile is cold: ``HOME`` points to an empty directory, so Dr.Jit's on-disk
   kernel cache starts empty (``--warm-kernel-cache`` keeps it). Time per spp is the slope of
@@ -20,7 +25,8 @@ average before and after, the git HEAD and the SHA-256 of the renderer's sources
   ``part_timing``); the intercept is the per-call overhead (tracing the Python BSDF into the
   kernel, launching).
   Also times the BSDF calls alone (``eval_pdf`` and ``sample`` on 2^20 lanes) and counts the
-  gather calls in the IR of the render kernel. Only one BSDF is alive at a time: Dr.Jit traces
+  gather call sites (LLVM masked gathers and Dr.Jit packet gathers) in the IR of the render
+  kernel. Only one BSDF is alive at a time: Dr.Jit traces
   a symbolic BSDF call into the kernel for every live BSDF instance.
 * ``convergence``: speed against error, same scene at ``--conv-res`` (128 x 128, so that a
   1024 spp reference fits a few minutes on 2 shared cores). A reference is rendered at
@@ -134,19 +140,20 @@ def matched_hair(mi: Any, eta: float, beta_deg: float) -> Any:
                          "azimuthal_roughness": b_n, "scale_tilt": 0.0, "int_ior": eta})
 
 
-def mat_scene(mi: Any, geom: Any, length: float, bsdf: Any, res: int, max_depth: int = 8) -> Any:
+def mat_scene(mi: Any, geom: Any, length: float, bsdf: Any, res: int, max_depth: int = 8,
+              integrator: str = "path") -> Any:
     from usdfiber.translators.curves import make_curve_shape
 
-    d = mat_scene_dict(mi, length, res, max_depth)
+    d = mat_scene_dict(mi, length, res, max_depth, integrator)
     d["fibers"] = make_curve_shape(geom, bsdf, "fibers")
     return mi.load_dict(d)
 
 
-def mat_scene_dict(mi: Any, length: float, res: int, max_depth: int = 8) -> dict[str, Any]:
+def mat_scene_dict(mi: Any, length: float, res: int, max_depth: int = 8, integrator: str = "path") -> dict[str, Any]:
     origin = [0.0, -0.6 * length, 1.1 * length]
     return {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": max_depth},
+        "integrator": {"type": integrator, "max_depth": max_depth},
         "sensor": {"type": "perspective", "fov": 45.0,
                    "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=[0.0, 0.0, -0.04 * length],
                                                                up=[0.0, 0.0, 1.0]),
@@ -179,9 +186,20 @@ def _kernel_stats(history: list[dict]) -> dict[str, Any]:
         "cache_hits": sum(int(h.get("cache_hit", 0)) for h in history),
         "disk_cache_hits": sum(int(h.get("cache_disk", 0)) for h in history),
         "largest_kernel_ops": int(big.get("operation_count", 0)) if big else 0,
+        # Gather call sites: LLVM's masked gathers and Dr.Jit's packet gathers (one call reads
+        # a whole 2/4/8-vector per lane, e.g. @gather_4xf16).
         "largest_kernel_gather_calls": sum(1 for line in ir.splitlines()
-                                           if "call" in line and "llvm.masked.gather" in line),
+                                           if "call" in line and ("llvm.masked.gather" in line or "@gather_" in line)),
     }
+
+
+TRANSLATOR = "translator"
+
+
+def translator_integrator(mi: Any, bsdf: Any) -> str:
+    """The integrator ``translate_stage`` uses for fibers with ``bsdf``: ``volpath`` when the
+    BSDF has a null (pass-through) component, whose shadow rays it attenuates; else ``path``."""
+    return "volpath" if mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null) else "path"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,23 +316,37 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     # symbolic BSDF call for EVERY live BSDF instance, so live extra BSDFs would enlarge the
     # kernel of every render.
     silk_res = {False: args.silk_bank_res}
-    cases: list[tuple[str, Callable[[], Any], str]] = [
+    # (name, BSDF factory, description, integrator). TRANSLATOR: the integrator
+    # translators/scene.py picks for that BSDF (volpath when it has a pass-through component).
+    cases: list[tuple[str, Callable[[], Any], str, str]] = [
         ("ours_polyester", lambda: ours(poly[:1])[0],
          f"usdfiber_bcsdf, polyester (round) table, {bank_poly.families[True].resolution_deg:g} deg grid, "
-         f"{bank_poly.nbytes() / 1e6:.2f} MB bank"),
+         f"{bank_poly.nbytes() / 1e6:.2f} MB bank", TRANSLATOR),
+        ("ours_polyester_volpath", lambda: ours(poly[:1])[0],
+         "usdfiber_bcsdf, polyester, volpath (profiling: the cost of volpath itself)", "volpath"),
         ("ours_silk", lambda: ours([silk], res=silk_res)[0],
          f"usdfiber_bcsdf, silk (non-round) table on a {args.silk_bank_res:g} deg grid, "
-         f"{out['silk_bank']['MB']:.1f} MB bank, pass-through on"),
+         f"{out['silk_bank']['MB']:.1f} MB bank, pass-through on", TRANSLATOR),
+        ("ours_silk_path", lambda: ours([silk], res=silk_res)[0],
+         "usdfiber_bcsdf, silk, path (profiling: shadow rays treat the tubes as opaque, wrong for "
+         "non-round fibers)", "path"),
         ("ours_silk_no_pass", lambda: ours([silk], pass_through=False, res=silk_res)[0],
-         "usdfiber_bcsdf, silk, pass-through off (profiling only: wrong for non-round fibers)"),
+         "usdfiber_bcsdf, silk, pass-through off (profiling only: wrong for non-round fibers)", TRANSLATOR),
         ("ours_silk_coarse", lambda: ours([silk])[0],
          f"usdfiber_bcsdf, the same silk table on its own {args.silk_res:g} deg grid "
-         f"(profiling: a bank small enough for the CPU caches)"),
+         f"(profiling: a bank small enough for the CPU caches)", TRANSLATOR),
         ("hair", lambda: matched_hair(mi, eta_p, beta_p),
-         f"hair, no pigment, eta {eta_p}, roughness matched to beta {beta_p} deg"),
+         f"hair, no pigment, eta {eta_p}, roughness matched to beta {beta_p} deg", "path"),
+        ("hair_volpath", lambda: matched_hair(mi, eta_p, beta_p), "hair, volpath (profiling)", "volpath"),
         ("diffuse", lambda: mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}}),
-         "diffuse, reflectance 0.8"),
+         "diffuse, reflectance 0.8", "path"),
     ]
+    if args.cases:
+        unknown = set(args.cases) - {c[0] for c in cases}
+        if unknown:
+            raise SystemExit(f"--cases: unknown case(s) {sorted(unknown)}")
+        # hair is the reference of every ratio: always timed.
+        cases = [c for c in cases if c[0] in args.cases or c[0] == "hair"]
     spp_lo, spp_hi = args.spp_pair
     # BSDF calls alone: random lanes, eval_pdf and sample, after a warm-up.
     n = 1 << 20 if not args.quick else 1 << 16
@@ -334,16 +366,18 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     # that all cases see the same mix of machine load; medians over rounds. CPU time (all
     # threads) per spp is reported next to wall time: it is far less sensitive to other
     # processes competing for the 2 cores.
-    rec: dict[str, dict[str, Any]] = {name: {"desc": desc, "wall": {spp_lo: [], spp_hi: []},
+    rec: dict[str, dict[str, Any]] = {name: {"desc": desc, "integrator": integ, "wall": {spp_lo: [], spp_hi: []},
                                             "cpu": {spp_lo: [], spp_hi: []}, "warm_1spp": [],
-                                            "eval_pdf": [], "sample": []} for name, _, desc in cases}
+                                            "eval_pdf": [], "sample": []} for name, _, desc, integ in cases}
     ctx_b = mi.BSDFContext()
     for rnd in range(args.repeats):
-        for name, make, desc in cases:
+        for name, make, desc, integ in cases:
             r = rec[name]
             gc.collect()
             bsdf = make()
-            scene = mat_scene(mi, geom, length, bsdf, args.res)
+            if integ == TRANSLATOR:
+                integ = r["integrator"] = translator_integrator(mi, bsdf)
+            scene = mat_scene(mi, geom, length, bsdf, args.res, integrator=integ)
             if rnd == 0:
                 dr.kernel_history_clear()
                 with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
@@ -393,7 +427,7 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
             lo, hi = float(np.median(r[kind][spp_lo])), float(np.median(r[kind][spp_hi]))
             per[kind] = ((hi - lo) / (spp_hi - spp_lo), lo - spp_lo * (hi - lo) / (spp_hi - spp_lo))
         cores = [c / w for c, w in zip(r["cpu"][spp_hi], r["wall"][spp_hi])]
-        res[name] = {"desc": r["desc"], "first_render_1spp_s": r["first_render_1spp_s"], "kernel": r["kernel"],
+        res[name] = {"desc": r["desc"], "integrator": r["integrator"], "first_render_1spp_s": r["first_render_1spp_s"], "kernel": r["kernel"],
                      "warm_render_1spp_s": float(np.median(r["warm_1spp"])),
                      "wall_s": {str(k): v for k, v in r["wall"].items()}, "cpu_s": {str(k): v for k, v in r["cpu"].items()},
                      "time_per_spp_s": per["wall"][0], "per_call_overhead_s": per["wall"][1],
@@ -406,11 +440,11 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
         r["cpu_ratio_vs_hair"] = r["cpu_per_spp_s"] / res["hair"]["cpu_per_spp_s"]
         k = r["kernel"]
         comp = "cached" if k["disk_cache_hits"] else f"{k['compile_seconds']:.2f} s"
-        rows.append([name, r["desc"], f"{r['time_per_spp_s'] * 1e3:.0f} ms", f"{r['ratio_vs_hair']:.2f}",
+        rows.append([name, r["desc"], r["integrator"], f"{r['time_per_spp_s'] * 1e3:.0f} ms", f"{r['ratio_vs_hair']:.2f}",
                      f"{r['cpu_per_spp_s'] * 1e3:.0f} ms", f"{r['cpu_ratio_vs_hair']:.2f}",
                      _fmt_s(r["warm_render_1spp_s"]), f"{r['first_render_1spp_s']:.2f} s", comp,
                      k["largest_kernel_gather_calls"], f"{r['cores_median']:.2f}"])
-    print(_table(["case", "BSDF", "wall / spp", "x hair", "CPU / spp", "x hair (CPU)", "1-spp render (warm)",
+    print(_table(["case", "BSDF", "integrator", "wall / spp", "x hair", "CPU / spp", "x hair (CPU)", "1-spp render (warm)",
                   "first 1-spp render", "kernel compile", "gathers (IR)", "cores"], rows))
     out["renders"] = res
     out["spp_pair"] = [spp_lo, spp_hi]
@@ -655,6 +689,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp-pair", type=lambda s: tuple(int(x) for x in s.split(",")), default=(4, 16))
     ap.add_argument("--conv-res", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=3, help="timing rounds")
+    ap.add_argument("--cases", type=lambda s: [x.strip() for x in s.split(",") if x.strip()], default=None,
+                    help="timing: only these cases (comma-separated names; hair is always timed)")
     ap.add_argument("--silk-res", type=float, default=SILK_BAKE_RES)
     ap.add_argument("--silk-photons", type=int, default=SILK_PHOTONS)
     ap.add_argument("--silk-bank-res", type=float, default=SILK_BANK_RES)

@@ -43,7 +43,8 @@ Expected differences (why the tolerances are a bin, or a few %, not the noise le
   beyond). Our lobes come from photons traced through a rough microsurface. Our table is also
   bilinear between 6 deg bin centres and linear in theta_v between nodes. This smears every
   lobe over about +-6 deg, and between nodes (theta_v = 30 deg) it mixes the slices of
-  27 and 33 deg, so the peak lands on a node (-33 deg). The peaks agree to within a bin; the
+  27 and 33 deg, so the peak lands on a node (-27 or -33 deg: the two differ by 1e-4, a tie that
+  the float16 rounding of the node values decides). The peaks agree to within a bin; the
   widths do not (back-half standard deviation about the mean: ours 7.0-8.0 deg, hair 6.0 deg).
 * Azimuthal shape: ``hair`` places each path p at its smooth-circle exit azimuth
   Phi(p, h) = 2p gamma_t - 2 gamma_i + p pi and blurs it with one trimmed logistic for all p.

@@ -18,6 +18,7 @@ from pxr import Usd, UsdGeom, UsdLux, UsdShade
 from usdfiber.bake.baker import BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.translators.scene import SceneOptions, translate_stage
+from usdfiber.translators.yarn_far_field import YarnBakeSettings
 from usdfiber.validation.runner import check_stage
 
 SCRIPT = Path(__file__).resolve().parent.parent / "examples" / "make_paper_scenes.py"
@@ -145,7 +146,9 @@ def test_translates(scenes, cache, name):
     stage = _open(out, name)
     for path in SILK_ONLY[name] or ():
         stage.GetPrimAtPath(path).SetActive(False)
-    tr = translate_stage(stage, SceneOptions(resolution=(16, 16), spp=1, bake=TINY, cache=cache))
+    # lod_scale 0: every fiber (at 16 x 16 px the yarns would be drawn with their far fields)
+    tr = translate_stage(stage, SceneOptions(resolution=(16, 16), spp=1, bake=TINY, cache=cache, lod_scale=0.0,
+                                             yarn_bake=YarnBakeSettings(30, photons=400)))
     assert tr.camera != "default"
     assert tr.counts["lights"] == 2 and tr.counts["meshes"] == 1
     assert tr.counts["fiber_curves"] > 0 and tr.counts["fiber_tables"] == 4  # silk's variants

@@ -15,9 +15,12 @@ from usdfiber.bake.cache import TableCache
 from usdfiber.cli import main
 from usdfiber.image_output import read_exr
 from usdfiber.translators.scene import SceneOptions, translate_stage
+from usdfiber.translators.yarn_far_field import YarnBakeSettings
+from usdfiber.translators.yarns import YarnParams
 
 FAST = ["--bake-resolution", "15", "--bake-photons", "4000"]
 FAST_SETTINGS = BakeSettings(resolution_deg=15, photons=4000, batches=4)
+FAST_YARN_SETTINGS = YarnBakeSettings(30, photons=600)
 
 
 @pytest.fixture(autouse=True)
@@ -117,14 +120,34 @@ def test_render_no_bake_names_the_missing_table(tmp_path, capsys, monkeypatch):
     assert "/W/Red" in err and "usdfiber bake" in err
 
 
-def test_yarn_level_approximation_is_refused_clearly(tmp_path, capsys):
+FAST_YARN = ["--yarn-bake-resolution", "30", "--yarn-bake-photons", "600"]
+
+
+def test_yarn_level_approximation_renders_without_fibers(tmp_path, capsys):
+    """yarn:expandFibers = false: each yarn curve is one curve with the yarn's far field."""
     src = _stage(tmp_path)
     stage = Usd.Stage.Open(str(src))
     A.apply_yarn(stage.GetPrimAtPath("/W/Blue"), "Skala 360", expand_fibers=False)
     stage.Save()
-    rc = main(["render", str(src), "-o", str(tmp_path / "x.exr"), "--no-progress", *FAST])
+    rc = main(["render", str(src), "-o", str(tmp_path / "x.exr"), "--no-progress", "--resolution", "48x32",
+               "--spp", "4", *FAST, *FAST_YARN])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "0 fibers expanded of 0 at full detail, 12 drawn with their far field" in out
+    img = read_exr(tmp_path / "x.exr")[0]
+    assert np.isfinite(img).all() and img.max() > 0
+
+
+def test_yarn_level_approximation_needs_baking_or_a_cached_far_field(tmp_path, capsys):
+    src = _stage(tmp_path)
+    stage = Usd.Stage.Open(str(src))
+    A.apply_yarn(stage.GetPrimAtPath("/W/Blue"), "Skala 360", expand_fibers=False)
+    stage.Save()
+    rc = main(["render", str(src), "-o", str(tmp_path / "x.exr"), "--no-progress", "--no-bake",
+               "--resolution", "16x16", "--spp", "1", *FAST, "--yarn-bake-resolution", "30",
+               "--yarn-bake-photons", "601"])
     err = capsys.readouterr().err
-    assert rc == 1 and "/W/Blue.yarn:expandFibers" in err and "yarn-level approximation" in err
+    assert rc == 1 and "/W/Blue" in err and "far field" in err
 
 
 def test_gpu_device_without_cuda_is_a_clear_error(tmp_path, capsys):
@@ -250,21 +273,43 @@ def _yarn_stage(cam_z: float):
 
 
 def test_yarns_expand_with_culling_and_level_of_detail():
-    near = translate_stage(_yarn_stage(1.0), SceneOptions(resolution=(256, 256), spp=1, bake=FAST_SETTINGS))
+    near = translate_stage(_yarn_stage(1.0), SceneOptions(resolution=(256, 256), spp=1, bake=FAST_SETTINGS,
+                                                          yarn_bake=FAST_YARN_SETTINGS))
     c = near.counts
-    assert c["yarn_yarns"] == 2 and c["yarn_culled"] == 1      # the yarn aside produces nothing
+    assert c["yarn_yarns"] == 2 and c["yarn_culled"] == 1      # the yarn aside: no fibers,
     assert c["yarn_fibers"] == c["yarn_fibers_full"] >= 3 * 70   # close up: every fiber and flyaway
-    assert near.fibers.curve_count == c["yarn_fibers"]
-    far = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS))
-    cf = far.counts
-    assert cf["yarn_culled"] == 1 and cf["yarn_fibers"] < cf["yarn_fibers_full"] / 4
+    assert c["yarn_far"] == 0
+    assert near.fibers.curve_count == c["yarn_fibers"] + 1       # but a far-field proxy (shadows)
+    # At 5 mm the yarn is 4.3 px wide: fewer fibers, still fibers.
+    mid = translate_stage(_yarn_stage(5.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
+                                                         yarn_bake=FAST_YARN_SETTINGS))
+    cm = mid.counts
+    assert cm["yarn_culled"] == 1 and cm["yarn_far"] == 0 and cm["yarn_fibers"] < cm["yarn_fibers_full"] / 4
     # Kept fibers are widened by 1/sqrt(fraction): the yarn keeps its total fiber cross-section.
     f_near = near.fibers.geometry.radii.mean()
-    f_far = far.fibers.geometry.radii.mean()
-    assert f_far / f_near == pytest.approx(math.sqrt(cf["yarn_fibers_full"] / cf["yarn_fibers"]), rel=0.15)
-    off = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
-                                                            lod_scale=0.0))
+    f_mid = mid.fibers.geometry.radii.mean()
+    assert f_mid / f_near == pytest.approx(math.sqrt(cm["yarn_fibers_full"] / cm["yarn_fibers"]), rel=0.15)
+    off = translate_stage(_yarn_stage(5.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
+                                                           yarn_bake=FAST_YARN_SETTINGS, lod_scale=0.0))
     assert off.counts["yarn_fibers"] == c["yarn_fibers"]
+
+
+def test_sub_pixel_yarns_use_their_far_field():
+    """At 200 mm the yarn is 0.11 px wide: one curve of the far field's bounding width."""
+    far = translate_stage(_yarn_stage(200.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
+                                                            yarn_bake=FAST_YARN_SETTINGS))
+    c = far.counts
+    assert c["yarn_far"] == 1 and c["yarn_fibers"] == 0 and c["yarn_culled"] == 1
+    geom = far.fibers.geometry
+    # Sub-pixel: the 2 mm yarn (2.25 mm per pixel here) needs no more than its two end points,
+    # and so does the out-of-view proxy of the yarn aside.
+    assert far.fibers.segment_count == 2
+    ff = far.fibers.bank.slots[int(far.fibers.seg_slot[0])].table
+    rb = ff.header["piece"]["bound_radius"]
+    # The curve is the yarn's centre line widened to the fibers' bounding radius.
+    assert geom.radii.max() == pytest.approx(0.2415 / 2 * rb / YarnParams.from_prim(
+        _yarn_stage(1.0).GetPrimAtPath("/Y/Seen")).yarn_radius, rel=1e-6)
+    assert 0.3 < float(ff.coverage.min()) <= float(ff.coverage.max()) <= 1.0
 
 
 def test_check_warnings_are_reported_as_check_lines(tmp_path, capsys):

@@ -14,8 +14,9 @@ normalized to its own albedo, exactly, so on coarse grids a weight may exceed 1 
 interpolation error).
 
 Both are stored on a grid of nodes at the table's bin centres and interpolated linearly in
-``omega_v`` (theta_v, phi_v) and bilinearly in ``omega_l`` (theta_l, phi_l), which is what
-Mitsuba's ``MarginalContinuous2D`` distributions sample exactly. Coordinates of a slice:
+``omega_v`` (theta_v, phi_v) and bilinearly in ``omega_l`` (theta_l, phi_l), which the
+renderer samples exactly (the algorithm of Mitsuba's ``MarginalContinuous2D``, on the CDFs of
+:meth:`Family.sampling_cdfs`). Coordinates of a slice:
 
 * ``y`` in [0, 1] spans theta from the first to the last bin centre,
   ``theta = -pi/2 + s/2 + y (pi - s)`` for bin size ``s``; the polar caps beyond the outer
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -47,6 +49,8 @@ from usdfiber.bake.table import BcsdfTable, Grid, Recoloured
 __all__ = ["Family", "FiberBank", "FiberSlot", "bilinear_integral"]
 
 _TWO_PI = 2.0 * math.pi
+#: theta_v nodes of ``FiberBank.slot_coverage``: -90 to 90 degrees every 5 degrees.
+COVERAGE_THETA = np.linspace(-0.5 * math.pi, 0.5 * math.pi, 37)
 
 
 @dataclass(frozen=True)
@@ -85,8 +89,68 @@ class Family:
         """pi - s: the theta range the y coordinate spans."""
         return math.pi - self.step
 
+    @cached_property
+    def node_scale(self) -> float:
+        """The power of two node values are multiplied by before rounding to float16.
+
+        It puts the family's largest value in [2^14, 2^15): float16 (largest finite value
+        65504) keeps a factor of 2 of headroom, and values down to 2^-29 of the largest stay
+        normal numbers with float16's full precision. Peaky slices reach values of a few
+        hundred on a 6 deg grid (up to ``4 (H - 1) (W - 1)`` in principle), tails go down
+        to 1e-17: unscaled, the former could overflow on fine grids and the latter would
+        lose their precision. A power of two is exact to apply and to undo.
+        """
+        top = max(float(self.f.max(initial=0.0)), float(self.pdf.max(initial=0.0)))
+        if not (math.isfinite(top) and top > 0):
+            return 1.0
+        return math.ldexp(1.0, 15 - math.frexp(top)[1])
+
+    def node_table(self) -> np.ndarray:
+        """(S, n_tv, n_pv, H, W, 4) float16: ``node_scale * [f_r, f_g, f_b, p0]`` per slot and node.
+
+        What the renderer stores and gathers (one 8-byte vector per node). Each value is
+        rounded to nearest: a relative error of at most 2^-11 (4.9e-4) for values above
+        ``2^-14 / node_scale``, an absolute one of at most ``2^-25 / node_scale`` below.
+        ``p0`` (the slot's table's sampling density) rides along in the fourth channel.
+        """
+        s = self.node_scale
+        out = np.empty(self.f.shape[:-1] + (4,), np.float16)
+        out[..., :3] = self.f * s
+        out[..., 3] = self.pdf[self.slot_table] * s
+        return out
+
+    def sampling_pdf(self) -> np.ndarray:
+        """(T, n_tv, n_pv, H, W) float32: ``pdf`` rounded exactly as :meth:`node_table` stores it.
+
+        The sampler is built from these values, so that it draws from the density that
+        evaluation reports.
+        """
+        s = self.node_scale
+        return (self.pdf * s).astype(np.float16).astype(np.float32) / np.float32(s)
+
+    def sampling_cdfs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The sampler's tables, integrals of :meth:`sampling_pdf` (float32, not normalized).
+
+        ``marg`` (T n_tv n_pv, H - 1): per slice, the running integral over y of the row
+        integrals (its last entry is the slice's total); ``cond`` (T n_tv n_pv, H, W - 1): per
+        row, the running integral over x of the row's linear interpolant. Those of Mitsuba's
+        ``MarginalContinuous2D`` (continuous variant), summed in float64.
+        """
+        v = self.sampling_pdf().astype(np.float64)
+        h, w = v.shape[-2:]
+        v = v.reshape(-1, h, w)
+        cond = np.cumsum((0.5 / (w - 1)) * (v[:, :, :-1] + v[:, :, 1:]), axis=-1)
+        rows = cond[:, :, -1]
+        marg = np.cumsum((0.5 / (h - 1)) * (rows[:, :-1] + rows[:, 1:]), axis=-1)
+        return marg.astype(np.float32), cond.astype(np.float32)
+
     def nbytes(self) -> int:
-        return int(self.pdf.nbytes + self.f.nbytes)
+        """Bytes the renderer keeps on the device: the float16 node table and the sampler's
+        float32 tables (:meth:`sampling_cdfs`)."""
+        t, n_tv, n_pv, h, w = self.pdf.shape
+        table = self.f[..., 0].size * 4 * 2
+        cdfs = 4 * t * n_tv * n_pv * ((h - 1) + h * (w - 1))
+        return int(table + cdfs)
 
 
 def bilinear_integral(values: np.ndarray) -> np.ndarray:
@@ -163,6 +227,7 @@ class FiberBank:
     slot_family: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     slot_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     slot_width: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    slot_coverage: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
 
     @classmethod
     def build(cls, slots: Sequence[FiberSlot], resolution_deg: dict[bool, float] | None = None) -> "FiberBank":
@@ -188,14 +253,28 @@ class FiberBank:
             for k, i in enumerate(members):
                 bank.slot_family[i] = 0 if fam_round else 1
                 bank.slot_index[i] = k
-        # W(phi) / circumscribed diameter: the fraction of a curve's width the profile covers.
-        bank.slot_width = np.stack([np.clip(sl.table.arrays["width"].astype(np.float64)
-                                            / sl.table.baked_diameter_um, 0.0, 1.0)
-                                    for sl in bank.slots]).astype(np.float32)
+        # W(phi) / circumscribed diameter: the fraction of a curve's width the profile covers,
+        # on one phi grid for all slots (a yarn far field has a constant width).
+        n_w = max(len(sl.table.arrays["width"]) for sl in bank.slots)
+        bank.slot_width = np.stack([_width_row(sl, n_w) for sl in bank.slots]).astype(np.float32)
+        # coverage(theta_v): 1 for fibers (their profile is extruded); for a yarn far field the
+        # fraction of the rays meeting its tube that meet a fiber (yarn_far_field.py).
+        bank.slot_coverage = np.stack([
+            np.asarray(sl.table.coverage_at(COVERAGE_THETA), np.float64) if hasattr(sl.table, "coverage_at")
+            else np.ones(len(COVERAGE_THETA)) for sl in bank.slots]).clip(0.0, 1.0).astype(np.float32)
         return bank
 
     def nbytes(self) -> int:
-        return sum(f.nbytes() for f in self.families.values()) + int(self.slot_width.nbytes)
+        return (sum(f.nbytes() for f in self.families.values()) + int(self.slot_width.nbytes)
+                + int(self.slot_coverage.nbytes))
+
+
+def _width_row(slot: FiberSlot, n_w: int) -> np.ndarray:
+    """W(phi) / D of a slot at phi = 2 pi j / n_w (periodic linear resampling if needed)."""
+    w = np.asarray(slot.table.arrays["width"], np.float64) / slot.table.baked_diameter_um
+    if len(w) != n_w:
+        w = np.interp(_TWO_PI * np.arange(n_w) / n_w, _TWO_PI * np.arange(len(w)) / len(w), w, period=_TWO_PI)
+    return np.clip(w, 0.0, 1.0)
 
 
 def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slots: list[FiberSlot]) -> Family:

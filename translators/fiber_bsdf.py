@@ -28,8 +28,23 @@ Curves wider than the profile: a curve of width D (the circumscribed diameter) s
 for a profile that covers only ``W(phi_v)`` of it. A ray meeting the tube interacts with
 probability ``q = W(phi_v) / D`` and otherwise passes straight on (a ``Null`` component),
 so the pixel sees the fiber over ``W`` as it should; ``eval`` and ``pdf`` include the
-factor ``q``. Shadow rays in Mitsuba's integrators treat the tube as opaque: a fiber
-whose ``W`` is below ``D`` casts a shadow as wide as ``D`` (round fibers: exact).
+factor ``q``. Shadow rays pass too, through ``eval_null_transmission`` (0 or 1, 1 with
+probability ``1 - q``), but only integrators that call it honour it: ``volpath`` does,
+and does not count null events towards a path's depth. ``path`` tests shadow rays
+against the tube as if it were opaque (a shadow as wide as ``D``) and counts
+pass-throughs as bounces. So the translator (:mod:`usdfiber.translators.scene`) renders
+with ``volpath`` whenever a BSDF has the ``Null`` component, and with ``path`` otherwise
+(round fibers: ``W = D``, no pass-through).
+
+Yarn far fields (:mod:`usdfiber.translators.yarn_far_field`) are slots of the round family
+drawn on a curve of the yarn's bounding width: there ``q`` is the far field's coverage, the
+fraction of rays meeting the tube that meet a fiber, a function of ``theta_v``.
+
+Storage: per node one float16 4-vector (``Lambda p`` RGB and ``p0``, scaled by a power of
+two per family, :meth:`~usdfiber.translators.fiber_bank.Family.node_table`), converted to
+float32 before any arithmetic: values carry a relative rounding error of at most 2^-11.
+The sampler's CDFs are float32 integrals of the same rounded ``p0``, so sampling draws from
+the density that ``pdf`` reports.
 """
 from __future__ import annotations
 
@@ -46,19 +61,6 @@ PLUGIN_NAME = "usdfiber_bcsdf"
 _CLASSES: dict[str, type] = {}
 
 
-def _distribution(mi: Any, fam: Family) -> Any:
-    """Mitsuba's 2D distribution over (x, y) of every sampling slice of a family.
-
-    The slices (table, theta_v node, phi_v node) are flattened into one parameter with
-    integer values: the sampler always asks for one exact slice (it picks the incoming node
-    itself), so no interpolation between slices happens inside Mitsuba and each sample
-    costs the lookups of one slice.
-    """
-    t, n_tv, n_pv, h, w = fam.pdf.shape
-    arr = np.ascontiguousarray(fam.pdf.reshape(t * n_tv * n_pv, h, w), dtype=np.float32)
-    return mi.MarginalContinuous2D1(arr, [[float(i) for i in range(t * n_tv * n_pv)]], normalize=True)
-
-
 def bsdf_class(mi: Any) -> type:
     """The BSDF class for Mitsuba's active variant (defined once per variant)."""
     variant = mi.variant()
@@ -68,6 +70,10 @@ def bsdf_class(mi: Any) -> type:
 
     F = mi.Float
     U = mi.UInt32
+    # Node storage: float16, gathered as one 4-vector (8 bytes) per node. Derived from the
+    # variant's own types, so this holds for every backend (llvm, cuda).
+    F16 = dr.float16_array_t(F)
+    V4h = dr.float16_array_t(mi.Vector4f)
     Flags = mi.BSDFFlags
 
     def _dev(kind: Any, arr: np.ndarray) -> Any:
@@ -77,7 +83,7 @@ def bsdf_class(mi: Any) -> type:
         return x
 
     class _FamilyDevice:
-        """A family's arrays on the device."""
+        """A family's arrays on the device, its interpolation and its sampler."""
 
         def __init__(self, fam: Family) -> None:
             self.round = fam.round
@@ -88,12 +94,16 @@ def bsdf_class(mi: Any) -> type:
             self.theta0 = float(fam.theta_v[0])
             self.slice = h * w
             # Per slot and node: (Lambda p) RGB and the sampling density of the slot's table,
-            # interleaved so that one 4-wide gather reads both.
-            fp = np.concatenate([fam.f, fam.pdf[fam.slot_table][..., None]], axis=-1)
-            self.fp = _dev(F, fp.reshape(-1))
+            # interleaved so that one 4-wide gather reads both; float16 times a power of two
+            # (Family.node_table), which halves the bytes the random lookups pull through
+            # the caches.
+            self.fp = _dev(F16, fam.node_table().reshape(-1))
+            self.inv_scale = 1.0 / fam.node_scale
             self.slot_table = _dev(U, fam.slot_table.astype(np.uint32))
-            self.dist = _distribution(mi, fam)
-            self.n_tables = t
+            # The sampler's CDFs, integrals of the same float16-rounded p0 that eval gathers.
+            marg, cond = fam.sampling_cdfs()
+            self.marg = _dev(F, marg.reshape(-1))
+            self.cond = _dev(F, cond.reshape(-1))
 
         # -- coordinates --------------------------------------------------------------------
         def _phi_v(self, ph_v: Any) -> Any:
@@ -116,7 +126,7 @@ def bsdf_class(mi: Any) -> type:
             ph = ph_v + x * 2 * math.pi if self.round else 0.5 * self.s + x * 2 * math.pi
             return th, ph
 
-        # -- node weights (the same linear interpolation as MarginalContinuous2D) -------------
+        # -- interpolation ------------------------------------------------------------------
         def _lin(self, v: Any, v0: float, step: float, n: int) -> tuple[Any, Any]:
             if n == 1:
                 return U(0), F(0.0)
@@ -124,44 +134,117 @@ def bsdf_class(mi: Any) -> type:
             k = dr.minimum(U(dr.floor(u)), n - 2)
             return k, u - F(k)
 
-        def pick_node(self, table: Any, th_v: Any, ph_v: Any, u: Any) -> Any:
-            """The slice of an incoming node drawn with its interpolation weight (one u)."""
+        def _incoming(self, th_v: Any, ph_v: Any) -> tuple[Any, Any, Any, Any]:
+            """(kt, tt, kp, tp): the lower theta_v and phi_v nodes and the upper ones' weights."""
             kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
-            k = kt + dr.select(u < tt, U(1), U(0))
-            u = dr.select(u < tt, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
-            j = U(0)
-            if not self.round:
-                kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
-                j = kp + dr.select(u < tp, U(1), U(0))
-            return F((table * self.n_tv + k) * self.n_pv + j)
+            if self.round:
+                return kt, tt, U(0), F(0.0)
+            kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+            return kt, tt, kp, tp
+
+        def _cell(self, slot: Any, kt: Any, kp: Any, i: Any, j: Any, active: Any) -> list[list[Any]]:
+            """The corners of cell (i, j) in each incoming slice around the viewer.
+
+            [slice][corner]: slices (kt, kp), (kt, kp + 1), (kt + 1, kp), (kt + 1, kp + 1)
+            (two for round tables), corners (i, j), (i + 1, j), (i, j + 1), (i + 1, j + 1);
+            each a Vector4f ``node_scale * [f_r, f_g, f_b, p0]``.
+            """
+            base = slot * (self.n_tv * self.n_pv * self.slice) + j * self.w + i
+            out = []
+            for dt in (0, 1):
+                for dp in ((0,) if self.round else (0, 1)):
+                    b = base + ((kt + dt) * self.n_pv + (kp + dp)) * self.slice
+                    out.append([mi.Vector4f(dr.gather(V4h, self.fp, b + o, active))
+                                for o in (0, 1, self.w, self.w + 1)])
+            return out
+
+        def _blend(self, cell: list[list[Any]], tt: Any, tp: Any, ax: Any, ay: Any) -> tuple[Any, Any]:
+            """(Lambda p per channel, p0): the cell's corners interpolated at (ax, ay) in each
+            slice, the slices linearly in theta_v and phi_v."""
+            if self.round:
+                ws = [1.0 - tt, tt]
+            else:
+                ws = [(1.0 - tt) * (1.0 - tp), (1.0 - tt) * tp, tt * (1.0 - tp), tt * tp]
+            acc = mi.Vector4f(0.0)
+            for wgt, (v00, v10, v01, v11) in zip(ws, cell):
+                acc += wgt * dr.lerp(dr.lerp(v00, v10, ax), dr.lerp(v01, v11, ax), ay)
+            acc *= self.inv_scale
+            return mi.Color3f(acc.x, acc.y, acc.z), acc.w
 
         def eval_f(self, slot: Any, th_v: Any, ph_v: Any, x: Any, y: Any, active: Any) -> tuple[Any, Any]:
             """(Lambda p per channel, p0) in (x, y) density, interpolated like the sampler."""
-            kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
-            if self.round:
-                kp, tp = U(0), F(0.0)
-            else:
-                kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+            kt, tt, kp, tp = self._incoming(th_v, ph_v)
             fx = x * (self.w - 1)
             fy = y * (self.h - 1)
             i = dr.minimum(U(dr.floor(fx)), self.w - 2)
             j = dr.minimum(U(dr.floor(fy)), self.h - 2)
-            ax, ay = fx - F(i), fy - F(j)
-            rgb = mi.Color3f(0.0)
-            pdf = F(0.0)
-            n_pv_nodes = 1 if self.round else 2
-            for dt, wt in ((0, 1.0 - tt), (1, tt)):
-                for dp, wp in ((0, 1.0 - tp), (1, tp))[:n_pv_nodes]:
-                    sl = (kt + dt) * self.n_pv + (kp + dp)
-                    for dj, wy in ((0, 1.0 - ay), (1, ay)):
-                        for di, wx in ((0, 1.0 - ax), (1, ax)):
-                            cell = sl * self.slice + (j + dj) * self.w + (i + di)
-                            wgt = wt * wp * wy * wx
-                            v = dr.gather(mi.Vector4f, self.fp, slot * (self.n_tv * self.n_pv * self.slice) + cell,
-                                          active)
-                            rgb += wgt * mi.Color3f(v.x, v.y, v.z)
-                            pdf += wgt * v.w
-            return rgb, pdf
+            return self._blend(self._cell(slot, kt, kp, i, j, active), tt, tp, fx - F(i), fy - F(j))
+
+        # -- sampling -----------------------------------------------------------------------
+        @staticmethod
+        def _segment(u: Any, n: int, v0: Any, v1: Any) -> Any:
+            """Where in [0, 1] the integral of a density going linearly from v0 to v1 over
+            one of n patches of the unit interval reaches u (Mitsuba's ``sample_segment``)."""
+            non_const = dr.abs(v0 - v1) > 1e-4 * (v0 + v1)
+            div = dr.select(non_const, v0 - v1, v0 + v1)
+            t = u * (2.0 * n)
+            t = dr.select(non_const, v0 - dr.safe_sqrt(dr.square(v0) + t * (v1 - v0)), t)
+            return dr.clip(dr.select(div != 0, t / div, t), 0.0, 1.0)
+
+        def sample_f(self, slot: Any, table: Any, th_v: Any, ph_v: Any, u: Any, u2: Any,
+                     active: Any) -> tuple[Any, Any, Any, Any]:
+            """(x, y, Lambda p per channel, p0 at (x, y)) of a light direction drawn from p0.
+
+            One incoming node is picked with its interpolation weight (``u``) and its slice is
+            sampled exactly, as Mitsuba's ``MarginalContinuous2D`` samples a bilinear
+            interpolant: the row from the marginal CDF, y within it, the column from the
+            row-interpolated conditional CDF, x within it. The density drawn from is then
+            the interpolated p0 that eval reports (up to each slice's normalization,
+            1 + O(2^-11) after rounding). Sampling one exact slice costs the lookups of one
+            slice; the cell's corners are gathered once for the sampler and the result.
+            """
+            kt, tt, kp, tp = self._incoming(th_v, ph_v)
+            up_t = u < tt
+            pick = dr.select(up_t, U(1), U(0))
+            dt = pick
+            dp = U(0)
+            if not self.round:
+                u = dr.select(up_t, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
+                dp = dr.select(u < tp, U(1), U(0))
+                pick = 2 * dt + dp
+            sl = (table * self.n_tv + kt + dt) * self.n_pv + kp + dp
+            h1, w1 = self.h - 1, self.w - 1
+            uy = dr.clip(u2.y, dr.epsilon(F), 1.0 - dr.epsilon(F))
+            ux = dr.clip(u2.x, dr.epsilon(F), 1.0 - dr.epsilon(F))
+            # Row: the marginal CDF of the slice (its last entry is the slice's total).
+            m0 = sl * h1
+            uy *= dr.gather(F, self.marg, m0 + (h1 - 1), active)
+            row = dr.binary_search(0, h1 - 1, lambda k: dr.gather(F, self.marg, m0 + k, active) < uy)
+            uy -= dr.gather(F, self.marg, m0 + row - 1, active & (row > 0))
+            c0 = (sl * self.h + row) * w1
+            r0 = dr.gather(F, self.cond, c0 + (w1 - 1), active)
+            r1 = dr.gather(F, self.cond, c0 + (2 * w1 - 1), active)
+            ay = self._segment(uy, h1, r0, r1)
+
+            # Column: the conditional CDFs of the two rows, interpolated at y.
+            def cdf(k: Any, m: Any) -> Any:
+                return dr.lerp(dr.gather(F, self.cond, c0 + k, m), dr.gather(F, self.cond, c0 + w1 + k, m), ay)
+
+            ux *= dr.lerp(r0, r1, ay)
+            col = dr.binary_search(0, w1 - 1, lambda k: cdf(k, active) < ux)
+            ux -= cdf(col - 1, active & (col > 0))
+            cell = self._cell(slot, kt, kp, col, row, active)
+            # The picked slice's p0 along the cell's edges x = col and x = col + 1, at y.
+            ends = []
+            for a, b in ((0, 2), (1, 3)):
+                va, vb = cell[0][a].w, cell[0][b].w
+                for n in range(1, len(cell)):
+                    va = dr.select(pick == n, cell[n][a].w, va)
+                    vb = dr.select(pick == n, cell[n][b].w, vb)
+                ends.append(dr.lerp(va, vb, ay) * self.inv_scale)
+            ax = self._segment(ux, w1, ends[0], ends[1])
+            rgb, p = self._blend(cell, tt, tp, ax, ay)
+            return (F(col) + ax) / w1, (F(row) + ay) / h1, rgb, p
 
     class FiberBcsdf(mi.BSDF):
         """Tabulated far-field fiber BCSDF (see the module docstring)."""
@@ -226,7 +309,11 @@ def bsdf_class(mi: Any) -> type:
             self._seg_psi = _dev(F, seg_psi.astype(np.float32))
             self._seg_ref = mi.Vector3f(*(_dev(F, np.ascontiguousarray(seg_ref[:, k], np.float32))
                                           for k in range(3)))
-            self._pass = bool(pass_through) and bool(np.any(bank.slot_width < 0.999))
+            self._n_c = int(bank.slot_coverage.shape[1])
+            self._coverage = _dev(F, bank.slot_coverage.reshape(-1))
+            self._has_width = bool(np.any(bank.slot_width < 0.999))
+            self._has_coverage = bool(np.any(bank.slot_coverage < 0.999))
+            self._pass = bool(pass_through) and (self._has_width or self._has_coverage)
             self._set_flags(self._pass)
 
         # ---- frame -------------------------------------------------------------------------
@@ -255,19 +342,31 @@ def bsdf_class(mi: Any) -> type:
             ph = dr.atan2(dr.dot(w, y), dr.dot(w, x))
             return th, ph
 
-        def _q(self, slot: Any, ph_v: Any, active: Any) -> Any:
-            """Probability that a ray meeting the tube meets the profile: W(phi_v) / D."""
+        def _q(self, slot: Any, th_v: Any, ph_v: Any, active: Any) -> Any:
+            """Probability that a ray meeting the tube meets the scatterer:
+            ``W(phi_v) / D`` for a fiber, ``coverage(theta_v)`` for a yarn far field."""
+            q = F(1.0)
             if not self._pass:
-                return F(1.0)
-            u = ph_v / (2 * math.pi)
-            u = (u - dr.floor(u)) * self._n_w
-            j0 = dr.minimum(U(dr.floor(u)), self._n_w - 1)
-            a = u - F(j0)
-            j1 = dr.select(j0 + 1 == self._n_w, 0, j0 + 1)
-            base = slot * self._n_w
-            w0 = dr.gather(F, self._width, base + j0, active)
-            w1 = dr.gather(F, self._width, base + j1, active)
-            return (1.0 - a) * w0 + a * w1
+                return q
+            if self._has_width:
+                u = ph_v / (2 * math.pi)
+                u = (u - dr.floor(u)) * self._n_w
+                j0 = dr.minimum(U(dr.floor(u)), self._n_w - 1)
+                a = u - F(j0)
+                j1 = dr.select(j0 + 1 == self._n_w, 0, j0 + 1)
+                base = slot * self._n_w
+                w0 = dr.gather(F, self._width, base + j0, active)
+                w1 = dr.gather(F, self._width, base + j1, active)
+                q = (1.0 - a) * w0 + a * w1
+            if self._has_coverage:
+                u = dr.clip((th_v + 0.5 * math.pi) * ((self._n_c - 1) / math.pi), 0.0, float(self._n_c - 1))
+                j0 = dr.minimum(U(dr.floor(u)), self._n_c - 2)
+                a = u - F(j0)
+                base = slot * self._n_c
+                c0 = dr.gather(F, self._coverage, base + j0, active)
+                c1 = dr.gather(F, self._coverage, base + j0 + 1, active)
+                q = q * ((1.0 - a) * c0 + a * c1)
+            return q
 
         def _eval_pdf_world(self, si: Any, wl: Any, active: Any) -> tuple[Any, Any, Any]:
             """(Lambda p per channel, p0 per steradian, q) of the light direction ``wl`` (world)."""
@@ -289,7 +388,7 @@ def bsdf_class(mi: Any) -> type:
                 jac = 1.0 / (2 * math.pi * fam.span * dr.maximum(dr.cos(th_l), 1e-7))
                 val = dr.select(m, rgb * jac, val)
                 pdf = dr.select(m, p * jac, pdf)
-            q = self._q(slot, ph_v, active)
+            q = self._q(slot, th_v, ph_v, active)
             return val, pdf, q
 
         # ---- BSDF interface ----------------------------------------------------------------
@@ -314,7 +413,7 @@ def bsdf_class(mi: Any) -> type:
             t, x, y, slot = self._frame(si, active)
             wv = si.to_world(si.wi)
             th_v, ph_v = self._angles(wv, t, x, y)
-            q = self._q(slot, ph_v, active)
+            q = self._q(slot, th_v, ph_v, active)
             use_null = self._pass and ctx.is_enabled(Flags.Null, 1)
             use_scatter = ctx.is_enabled(Flags.GlossyReflection) or ctx.is_enabled(Flags.GlossyTransmission)
             u_pick0 = sample1
@@ -341,11 +440,10 @@ def bsdf_class(mi: Any) -> type:
                 m = active & scatter & (fam_id == fid)
                 table = dr.gather(U, fam.slot_table, k, m)
                 # Pick one incoming node with its interpolation weight and sample its slice
-                # exactly: Mitsuba's own interpolation of CDFs between parameter values is
-                # not exactly the interpolated density its pdf reports.
-                xy, _ = fam.dist.sample(sample2, [fam.pick_node(table, th_v, ph_v, u_pick0)], m)
-                th_l, ph_l = fam.from_xy(xy.x, xy.y, ph_v)
-                rgb, p = fam.eval_f(k, th_v, ph_v, xy.x, xy.y, m)
+                # exactly: interpolating CDFs between nodes (as Mitsuba's parametric
+                # distributions do) would not sample the interpolated density eval reports.
+                xs, ys, rgb, p = fam.sample_f(k, table, th_v, ph_v, u_pick0, sample2, m)
+                th_l, ph_l = fam.from_xy(xs, ys, ph_v)
                 ct = dr.cos(th_l)
                 d = ct * (dr.cos(ph_l) * x + dr.sin(ph_l) * y) + dr.sin(th_l) * t
                 good = m & (p > 0)
@@ -368,11 +466,25 @@ def bsdf_class(mi: Any) -> type:
             return bs, w
 
         def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
+            """Transmission of a shadow ray through the tube: 0 or 1, 1 with probability 1 - q.
+
+            ``volpath`` multiplies a shadow ray's weight by this at every surface the ray meets
+            and traces on while the weight is non-zero. Returning the expectation 1 - q itself
+            would make every shadow ray cross every fiber in its way ((1 - q)^n never reaches
+            0): in a fiber mat that costs several times the whole render. A 0/1 value of the
+            same expectation stops the ray at the first fiber that blocks it: the choice
+            ``sample`` makes for camera and scattered rays (null or scatter). This interface
+            has no sampler: the uniform number is a hash of the hit point, a continuous random
+            variable of the path, so distinct hits draw independent-looking numbers.
+            """
             if not self._pass:
                 return mi.Color3f(0.0)
             t, x, y, slot = self._frame(si, active)
-            _, ph_v = self._angles(si.to_world(si.wi), t, x, y)
-            return mi.Color3f(1.0 - self._q(slot, ph_v, active))
+            th_v, ph_v = self._angles(si.to_world(si.wi), t, x, y)
+            q = self._q(slot, th_v, ph_v, active)
+            bx, by, bz = (dr.reinterpret_array(U, c) for c in (si.p.x, si.p.y, si.p.z))
+            u = mi.sample_tea_float32(bx ^ ((bz << 16) | (bz >> 16)), by, 8)
+            return mi.Color3f(dr.select(u < q, 0.0, 1.0))
 
         def to_string(self) -> str:
             return f"FiberBcsdf[families={[f is not None for f in self._fam]}, pass_through={getattr(self, '_pass', False)}]"

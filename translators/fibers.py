@@ -35,8 +35,9 @@ from usdfiber.fiber_params import FiberParams, FiberParamsError
 from usdfiber.translators.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
                                          reference_normals)
 from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.lod import CameraView, fiber_fraction
-from usdfiber.translators.yarns import YarnError, YarnParams, expand_yarn
+from usdfiber.translators.lod import CameraView, far_yarn, fiber_fraction
+from usdfiber.translators.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
+from usdfiber.translators.yarns import ExpandedFibers, YarnError, YarnParams, expand_yarn
 
 __all__ = ["FiberTranslation", "TranslateError", "fiber_prim", "translate_fibers"]
 
@@ -90,58 +91,148 @@ def _fiber_draws(params: FiberParams, path: str, n_curves: int, n_variants: int)
     return variant, np.mod(psi, 2.0 * math.pi)
 
 
-def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Each yarn centre curve sampled densely, one curve at a time: (points (M, 3), radii (M,)).
-
-    Curve by curve, so that memory follows one yarn, not the whole prim; segments are ordered
-    by curve (CurveGeometry), so a curve's segments are one contiguous run.
-    """
-    t = np.linspace(0.0, 1.0, per_segment, endpoint=False)
+def _curve_segments(geom: CurveGeometry) -> Iterator[np.ndarray]:
+    """The segment indices of each curve of ``geom``, one curve at a time (segments are ordered
+    by curve, so a curve's segments are one contiguous run); empty curves are skipped."""
     ends = np.cumsum(np.bincount(geom.segment_curve, minlength=geom.curve_count))
     for c in range(geom.curve_count):
         ss = np.arange(ends[c - 1] if c else 0, ends[c])
-        if len(ss) == 0:
-            continue
-        P, R, _ = evaluate(geom, np.repeat(ss, per_segment), np.tile(t, len(ss)))
-        end_p, end_r, _ = evaluate(geom, ss[-1:], np.ones(1))
-        yield np.concatenate([P, end_p]), np.concatenate([R, end_r])
+        if len(ss):
+            yield ss
+
+
+def _sample_curve(geom: CurveGeometry, ss: np.ndarray, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
+    """A curve (its segments ``ss``) sampled ``per_segment`` times per segment plus its end:
+    (points (M, 3), radii (M,))."""
+    t = np.linspace(0.0, 1.0, per_segment, endpoint=False)
+    P, R, _ = evaluate(geom, np.repeat(ss, per_segment), np.tile(t, len(ss)))
+    end_p, end_r, _ = evaluate(geom, ss[-1:], np.ones(1))
+    return np.concatenate([P, end_p]), np.concatenate([R, end_r])
+
+
+def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each yarn centre curve sampled densely, one curve at a time: (points (M, 3), radii (M,)),
+    so that memory follows one yarn, not the whole prim."""
+    for ss in _curve_segments(geom):
+        yield _sample_curve(geom, ss, per_segment)
+
+
+@dataclass
+class _YarnLevels:
+    """What a yarn prim becomes: fiber curves, and the yarns drawn with their far field, either
+    as the authored curves (``far_curves``, indices) or, where the camera makes them small, as
+    polylines sampled about once per pixel (``far_lines``: points, radius)."""
+
+    fibers: CurveGeometry
+    far_curves: np.ndarray
+    far_lines: list[tuple[np.ndarray, float]]
+    stats: dict[str, int]
+
+    @property
+    def far_count(self) -> int:
+        return len(self.far_curves) + len(self.far_lines)
+
+
+def _pixel_polyline(pts: np.ndarray, spacing: float) -> np.ndarray:
+    """The samples of a dense polyline about ``spacing`` apart along it (both ends kept)."""
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= spacing or not math.isfinite(spacing) or spacing <= 0:
+        return pts[[0, -1]] if s[-1] <= spacing else pts
+    k = np.floor(s / spacing).astype(np.int64)
+    keep = np.flatnonzero(np.diff(k, prepend=-1) > 0)
+    if keep[-1] != len(pts) - 1:
+        keep = np.append(keep, len(pts) - 1)
+    return pts[keep]
 
 
 def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, view: CameraView | None,
-                  lod_scale: float, instance_id: int) -> tuple[CurveGeometry, dict[str, int]]:
-    """Expand every visible yarn curve of a prim into fiber curves (level of detail: lod.py)."""
+                  lod_scale: float, instance_id: int) -> _YarnLevels:
+    """Expand the visible yarn curves of a prim into fiber curves (level of detail: lod.py).
+
+    Yarns narrower than :data:`~.lod.FAR_YARN_PIXELS` / ``lod_scale`` pixels, yarns outside the
+    view (``culled``: they still cast shadows), and every yarn when ``yarn:expandFibers`` is
+    false are drawn with the yarn's far field instead.
+    """
     parts = []
-    stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0}
-    for c, (pts, rad) in enumerate(_yarn_polylines(geom)):
+    far_curves: list[int] = []
+    far_lines: list[tuple[np.ndarray, float]] = []
+    stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0, "far": 0}
+    for k, ss in enumerate(_curve_segments(geom)):
+        # Two samples per segment decide visibility and size; only a yarn that is expanded
+        # needs the dense centre line (a garment's far yarns would spend minutes on it).
+        pts, rad = _sample_curve(geom, ss, 2)
         stats["yarns"] += 1
         r = float(rad.max())
         fraction = 1.0
         if view is not None:
+            n_px = view.pixels(2 * r, pts)
             if not view.visible(pts.min(axis=0) - r, pts.max(axis=0) + r):
+                # Out of view, a yarn still shadows the view and lights it indirectly: it stays
+                # as a far-field proxy, sampled as if seen (leaving it out made a close-up of a
+                # weave 6 % too bright: bench/REPORT.md).
                 stats["culled"] += 1
+                far_lines.append((_pixel_polyline(pts, max(2 * r / n_px, 2 * r)), r))
                 continue
-            fraction = fiber_fraction(view.pixels(2 * r, pts), yarn.fiber_count, lod_scale=lod_scale)
+            if far_yarn(n_px, lod_scale=lod_scale):
+                # A yarn this small needs no more than a sample per pixel along it (its crimp
+                # and bends are sub-pixel): a yarn of a garment seen whole shrinks from
+                # thousands of segments to its length in pixels.
+                far_lines.append((_pixel_polyline(pts, 2 * r / n_px), r))
+                continue
+            fraction = fiber_fraction(n_px, yarn.fiber_count, lod_scale=lod_scale)
+        if not yarn.expand:
+            far_curves.append(int(geom.segment_curve[ss[0]]))
+            continue
+        pts, rad = _sample_curve(geom, ss, 8)
         ex = expand_yarn(pts, rad / yarn.yarn_radius, yarn, fiber_fraction=fraction,
-                         seed_offset=instance_id * 1_000_003 + c)
+                         seed_offset=instance_id * 1_000_003 + k)
         stats["fibers"] += ex.curve_count
         stats["fibers_full"] += int(round(ex.curve_count / fraction))
         # Fewer fibers are widened to keep the yarn's total fiber cross-section (lod.py).
         parts.append(ex.to_curve_geometry(fiber_diameter / math.sqrt(fraction)))
-    if not parts:
-        return CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0), stats
-    return concatenate(parts), stats
+    stats["far"] = len(far_curves) + len(far_lines) - stats["culled"]
+    fibers = concatenate(parts) if parts else _no_curves()
+    return _YarnLevels(fibers, np.asarray(far_curves, np.int64), far_lines, stats)
+
+
+def _no_curves() -> CurveGeometry:
+    return CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
+
+
+def _far_yarn_curves(geom: CurveGeometry, levels: _YarnLevels, yarn: YarnParams, bound_radius: float) -> CurveGeometry:
+    """The far-field yarn curves of a prim, widened to the far field's bounding radius
+    (``bound_radius`` for the nominal yarn radius; authored widths scale it)."""
+    scale = bound_radius / yarn.yarn_radius
+    parts = []
+    if len(levels.far_curves):
+        keep = np.isin(geom.segment_curve, levels.far_curves)
+        parts.append(CurveGeometry(geom.points, geom.radii * scale, geom.segment_start[keep],
+                                   geom.segment_curve[keep], geom.curve_count, []))
+    if levels.far_lines:
+        # The samples as B-spline control points, with the yarn module's phantom end points.
+        lines = [p for p, _ in levels.far_lines]
+        counts = np.array([len(p) for p in lines], np.int64)
+        ex = ExpandedFibers(np.concatenate(lines), counts, np.zeros(len(lines), np.int64),
+                            np.zeros(len(lines), np.int64))
+        g = ex.to_curve_geometry(1.0)
+        g.radii = np.repeat([r * scale for _, r in levels.far_lines], counts + 2)
+        parts.append(g)
+    return concatenate(parts)
 
 
 def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.TimeCode, *,
                      settings: BakeSettings, cache: TableCache | None = None, bake_missing: bool = True,
                      progress: Callable[..., Any] | None = None, view: CameraView | None = None,
-                     lod_scale: float = 1.0) -> FiberTranslation | None:
+                     lod_scale: float = 1.0, yarn_settings: YarnBakeSettings | None = None) -> FiberTranslation | None:
     """The fiber curves of ``placements`` (:class:`usdfiber.translators.stage_walk.Placement` of fiber
     prims) with their tables (baked with ``settings`` when missing); None without fibers.
 
     Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.translators.yarns`)
     with the level of detail of ``view`` (:mod:`usdfiber.translators.lod`; None: every yarn at
-    full detail).
+    full detail); yarns too small to resolve, and those with ``yarn:expandFibers`` false, are
+    drawn as one curve each with the yarn's far field (:mod:`.yarn_far_field`, traced with
+    ``yarn_settings`` when missing).
 
     Raises TranslateError for prims that cannot be rendered (unresolvable fiber values,
     malformed curves, yarn curves, tables that cannot be baked).
@@ -159,6 +250,15 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     yarn_stats: list[dict[str, int]] = []
     um = _scene_units_per_um(stage)
     cache = cache or TableCache()
+    far_cache = YarnFarFieldCache(cache)
+    yarn_settings = yarn_settings or YarnBakeSettings()
+
+    def slot_id(table: Any, sigma: tuple[float, ...]) -> int:
+        sk = (id(table), sigma)
+        if sk not in slot_ids:
+            slot_ids[sk] = len(slots)
+            slots.append(FiberSlot(table, sigma))  # type: ignore[arg-type]
+        return slot_ids[sk]
 
     for pl in placements:
         prim = pl.prim
@@ -172,10 +272,6 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
                 yarn = YarnParams.from_prim(prim, time)
             except YarnError as exc:
                 raise TranslateError(str(exc)) from None
-            if not yarn.expand:
-                raise TranslateError(
-                    f"{pl.path}.yarn:expandFibers: false asks for the yarn-level approximation, which "
-                    f"this version does not render; set it to true to expand the yarn into fibers")
         key = (params.geometry_key(), params.table)
         tables = tables_by_key.get(key)
         if tables is None:
@@ -193,20 +289,27 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
         except CurveError as exc:
             raise TranslateError(str(exc)) from None
         warnings.extend(geom.warnings)
+        slot_of_variant = np.array([slot_id(t, tuple(float(x) for x in t.sigma_for(params.mu_a, params.diameter)))
+                                    for t in tables], np.int64)
         if yarn is not None:
-            geom, stats = _expand_yarns(geom, yarn, params.diameter * um, view, lod_scale, pl.instance_id)
-            yarn_stats.append(stats)
+            yarn_geom = geom
+            levels = _expand_yarns(yarn_geom, yarn, params.diameter * um, view, lod_scale, pl.instance_id)
+            geom = levels.fibers
+            yarn_stats.append(levels.stats)
+            if levels.far_count:
+                t0 = _time.perf_counter()
+                ff = _far_field(far_cache, pl.path, yarn, params.diameter * um,
+                                [slots[i] for i in slot_of_variant], yarn_settings, bake_missing, progress)
+                table_seconds += _time.perf_counter() - t0
+                far_geom = _far_yarn_curves(yarn_geom, levels, yarn, float(ff.header["piece"]["bound_radius"]))
+                parts.append(far_geom)
+                seg_slot.append(np.full(far_geom.segment_count, slot_id(ff, (0.0, 0.0, 0.0)), np.int64))
+                seg_psi.append(np.zeros(far_geom.segment_count))
         if geom.segment_count == 0:
+            if yarn is not None and yarn_stats[-1]["far"]:
+                prims.append(pl.path)
             continue
         variant, psi = _fiber_draws(params, pl.path, geom.curve_count, len(tables))
-        slot_of_variant = np.zeros(len(tables), np.int64)
-        for v, t in enumerate(tables):
-            sigma = tuple(float(x) for x in t.sigma_for(params.mu_a, params.diameter))
-            sk = (id(t), sigma)
-            if sk not in slot_ids:
-                slot_ids[sk] = len(slots)
-                slots.append(FiberSlot(t, sigma))  # type: ignore[arg-type]
-            slot_of_variant[v] = slot_ids[sk]
         parts.append(geom)
         seg_slot.append(slot_of_variant[variant[geom.segment_curve]])
         seg_psi.append(psi[geom.segment_curve])
@@ -220,4 +323,27 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
                             seg_psi=np.concatenate(seg_psi), seg_ref=reference_normals(geometry),
                             prims=prims, tables=all_tables, warnings=warnings,
                             table_seconds=table_seconds,
-                            yarns={k: sum(d[k] for d in yarn_stats) for k in ("yarns", "culled", "fibers", "fibers_full")})
+                            yarns={k: sum(d[k] for d in yarn_stats)
+                                   for k in ("yarns", "culled", "fibers", "fibers_full", "far")})
+
+
+def _far_field(far_cache: YarnFarFieldCache, path: str, yarn: YarnParams, fiber_diameter: float,
+               slots: list[FiberSlot], settings: YarnBakeSettings, bake_missing: bool,
+               progress: Callable[..., Any] | None) -> YarnFarField:
+    """The far field of a yarn prim, from the cache or traced now (with progress)."""
+    started = False
+
+    def prog(done: int, total: int) -> None:
+        nonlocal started
+        if progress is None:
+            return
+        if not started:
+            started = True
+            progress(0, total, {"event": "start", "label": f"yarn far field {path}", "unit": "photon"})
+        progress(done, total, {})
+
+    ff, _ = far_cache.get_or_bake(yarn, fiber_diameter, slots, settings, bake_missing=bake_missing, progress=prog)
+    if ff is None:
+        raise TranslateError(f"{path}: the yarn's far field (for yarns too small to show their fibers, or "
+                             f"yarn:expandFibers = false) is not cached and baking is off")
+    return ff

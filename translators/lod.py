@@ -13,6 +13,11 @@
   "Yarns, cloth and level of detail"). Their optics (diameter, absorption, tables) are
   unchanged. Flyaways follow the same fraction.
 
+* **Far yarns**: a yarn narrower than :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels is
+  not expanded at all: it is drawn as one curve with the yarn's far field, traced once
+  through its fibers (:mod:`.yarn_far_field`; measured against full expansion in
+  bench/REPORT.md, "Yarns, cloth and level of detail").
+
 ``lod_scale = 0`` turns the reduction off (every fiber is expanded; culling stays).
 """
 from __future__ import annotations
@@ -23,11 +28,16 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-__all__ = ["CameraView", "camera_view", "fiber_fraction"]
+__all__ = ["CameraView", "FAR_YARN_PIXELS", "camera_view", "far_yarn", "fiber_fraction"]
 
 #: Fibers kept per pixel of yarn diameter at lod_scale 1 (a pixel resolves about this many
 #: fiber highlights across a yarn).
 FIBERS_PER_PIXEL = 4.0
+
+#: Yarns narrower than this many pixels (at lod_scale 1) are drawn with their far field. Measured
+#: on a plain weave at 2.8 px per yarn: the far field's image bias is 0.25 (mean -0.1 %), that of
+#: fewer, widened fibers 0.34 (+39 %) at lod_scale 1 (bench/REPORT.md).
+FAR_YARN_PIXELS = 3.0
 
 
 @dataclass(frozen=True)
@@ -88,3 +98,8 @@ def fiber_fraction(yarn_pixels: float, fibers: int, *, lod_scale: float = 1.0, m
         return 1.0
     keep = max(float(min_fibers), lod_scale * FIBERS_PER_PIXEL * yarn_pixels)
     return float(min(1.0, keep / fibers))
+
+
+def far_yarn(yarn_pixels: float, *, lod_scale: float = 1.0) -> bool:
+    """Whether a yarn whose diameter covers ``yarn_pixels`` pixels is drawn with its far field."""
+    return lod_scale > 0 and yarn_pixels * lod_scale < FAR_YARN_PIXELS

@@ -31,6 +31,7 @@ from usdfiber.bake.cache import TableCache
 from usdfiber.translators.camera import camera_sensor, default_camera
 from usdfiber.translators.curves import CurveError, concatenate, curves_from_prim, make_curve_shape
 from usdfiber.translators.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.yarn_far_field import YarnBakeSettings
 from usdfiber.translators.fibers import FiberTranslation, TranslateError, fiber_prim, translate_fibers
 from usdfiber.translators.lights import default_light, light_emitter
 from usdfiber.translators.lod import camera_view
@@ -66,6 +67,7 @@ class SceneOptions:
     cache: TableCache | None = None
     pass_through: bool = True
     lod_scale: float = 1.0                      # yarn level of detail (lod.py); 0: every fiber
+    yarn_bake: YarnBakeSettings = field(default_factory=YarnBakeSettings)  # far fields of small yarns
 
 
 @dataclass
@@ -151,7 +153,7 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     view = camera_view(cam, tc, w, h) if cam is not None else None
     fibers = translate_fibers(fiber_placements, stage, tc, settings=opt.bake, cache=opt.cache,
                               bake_missing=opt.bake_missing, progress=progress, view=view,
-                              lod_scale=opt.lod_scale)
+                              lod_scale=opt.lod_scale, yarn_settings=opt.yarn_bake)
     times["tables"] = fibers.table_seconds if fibers is not None else 0.0
     counts = {"fiber_prims": len(fiber_placements), "fiber_curves": 0, "fiber_segments": 0,
               "curves_other": 0, "meshes": 0, "lights": 0}
@@ -228,7 +230,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         entries["sensor"] = default_camera(lo, hi, w, h, spp=spp, seed=opt.seed, up_axis=up)
         cam_name = "default"
         warnings.append("the stage has no camera: using a default camera that frames the visible geometry")
-    entries["integrator"] = {"type": "path", "max_depth": int(opt.max_depth)}
+    # Fibers that let rays pass (a Null component, e.g. non-round profiles: W < D) need volpath,
+    # whose shadow rays are attenuated by eval_null_transmission; path's treat tubes as opaque.
+    pass_through = fibers is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+    entries["integrator"] = {"type": "volpath" if pass_through else "path", "max_depth": int(opt.max_depth)}
     scene = mi.load_dict(entries)
     times["translate"] = _time.perf_counter() - t0 - times["tables"]
     return Translation(scene=scene, resolution=(w, h), spp=int(spp), camera=cam_name, fibers=fibers,

@@ -52,6 +52,8 @@ class RenderJob:
     bake_missing: bool = True
     pass_spp: int = 16
     lod_scale: float = 1.0
+    yarn_resolution_deg: float | None = None
+    yarn_photons: int | None = None
     half: bool = True
     view: str | None = None
     display: str | None = None
@@ -123,6 +125,7 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
     from dataclasses import replace
 
     from usdfiber.translators.scene import RENDER_BAKE_SETTINGS, SceneOptions, TranslateError, translate_stage
+    from usdfiber.translators.yarn_far_field import YarnBakeSettings
 
     bake = RENDER_BAKE_SETTINGS
     try:
@@ -130,12 +133,17 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
             bake = replace(bake, resolution_deg=float(job.bake_resolution_deg))
         if job.bake_photons is not None:
             bake = replace(bake, photons=int(job.bake_photons))
-    except BakeError as exc:
+        yarn_bake = YarnBakeSettings()
+        if job.yarn_resolution_deg is not None:
+            yarn_bake = replace(yarn_bake, resolution_deg=float(job.yarn_resolution_deg))
+        if job.yarn_photons is not None:
+            yarn_bake = replace(yarn_bake, photons=int(job.yarn_photons))
+    except (BakeError, ValueError) as exc:
         raise RenderRefused(str(exc)) from None
     opts = SceneOptions(time=job.frame, resolution=job.resolution, spp=job.spp, camera=job.camera,
                         render_settings=job.render_settings, seed=job.seed, max_depth=job.max_depth,
                         purposes=job.purposes, bake=bake, bake_missing=job.bake_missing,
-                        lod_scale=job.lod_scale)
+                        lod_scale=job.lod_scale, yarn_bake=yarn_bake)
     try:
         tr = translate_stage(stage, opts, progress=bake_progress)
     except (TranslateError, ValueError, BakeError) as exc:

@@ -63,6 +63,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lod-scale", type=finite_float, default=1.0, metavar="S",
                    help="yarn level of detail: fibers kept per pixel of yarn width, relative (default 1; "
                         "0 expands every fiber)")
+    p.add_argument("--yarn-bake-resolution", type=finite_float, metavar="DEG",
+                   help="bin size of yarn far fields traced for this render (yarns too small to show "
+                        "their fibers, or yarn:expandFibers false; default: 6)")
+    p.add_argument("--yarn-bake-photons", type=positive_int, metavar="N",
+                   help="photons per direction of yarn far fields traced for this render (default: 40000)")
     p.add_argument("--float", action="store_true", help="write a 32-bit float EXR (default: half)")
     p.add_argument("--view", help="OCIO view of the PNG (see --list-views)")
     p.add_argument("--display", help="OCIO display of the PNG (default: sRGB - Display)")
@@ -106,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
                     bake_resolution_deg=args.bake_resolution, bake_photons=args.bake_photons,
                     bake_missing=not args.no_bake, half=not args.float, view=args.view, display=args.display,
                     ocio_config=args.ocio_config, exposure=args.exposure, progress=not args.no_progress,
-                    warnings_as_errors=args.warnings_as_errors, lod_scale=max(0.0, args.lod_scale))
+                    warnings_as_errors=args.warnings_as_errors, lod_scale=max(0.0, args.lod_scale),
+                    yarn_resolution_deg=args.yarn_bake_resolution, yarn_photons=args.yarn_bake_photons)
     bake_progress = None if args.no_progress else _bake_progress()
     try:
         res = render_stage(job, bake_progress=bake_progress)
@@ -124,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
           f"{c.get('meshes', 0)} meshes, {c.get('lights', 0)} lights")
     if c.get("yarn_yarns"):
         print(f"yarns: {c['yarn_yarns']} ({c['yarn_culled']} outside the view), {c['yarn_fibers']} fibers expanded "
-              f"of {c['yarn_fibers_full']} at full detail")
+              f"of {c['yarn_fibers_full']} at full detail, {c.get('yarn_far', 0)} drawn with their far field")
     print(f"time: validate {t['validate']:.2f} s, tables {t['tables']:.2f} s, translate {t['translate']:.2f} s, "
           f"render {t['render']:.2f} s, write {t['write']:.2f} s, total {t['total']:.2f} s")
     for f in res.files:
@@ -142,7 +148,7 @@ def _bake_progress():
         if info.get("event") == "start":
             if state["bar"] is not None:
                 state["bar"].close()
-            state["bar"] = tqdm(total=total, initial=done, unit="dir", desc=f"bake {info.get('label', 'table')}",
+            state["bar"] = tqdm(total=total, initial=done, unit=info.get("unit", "dir"), desc=f"bake {info.get('label', 'table')}",
                                 file=sys.stderr, dynamic_ncols=True)
         elif state["bar"] is not None:
             state["bar"].update(done - state["bar"].n)
