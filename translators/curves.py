@@ -531,17 +531,16 @@ def make_curve_shape(geom: CurveGeometry, bsdf: Any = None, shape_id: str = "cur
     # Mitsuba 3.9.1 recovers a hit's segment as floor(v * segment_count) from the float32 global
     # parameter v without clamping: a hit at the very end of the last segment rounds v to 1
     # and reads past the segment buffer (a crash; upstream mitsuba3 PR #1928). A last,
-    # unreachable segment (radius 0) keeps that index in bounds.
+    # unreachable segment (radius 0 at the first control point) keeps that index in bounds. Such
+    # hits (within about N 2^-24 of the shape's end) still get a NaN shading frame from
+    # Mitsuba: the fiber BSDF treats them as absorbing (fiber_bsdf.py). A guard that continues
+    # the last segment instead gave finite frames but made the demo render segfault (cause not
+    # found).
     n = len(geom.points)
     cp = np.empty((n + 4, 4), np.float32)
     cp[:n, :3] = geom.points
     cp[:n, 3] = geom.radii
-    # The guard continues the last segment (at its start it has the last segment's end point and
-    # tangent). A hit whose parameter rounds into it (within about N 2^-24 of the shape's end)
-    # then gets a finite shading frame, if one turned about its normal; a guard collapsed to a
-    # point gave NaN tangents there (NaN pixels at yarn ends). Radius 0: never hit itself.
-    q = geom.points[geom.segment_start[-1] + np.arange(4)]
-    cp[n:, :3] = [q[1], q[2], q[3], 2.0 * q[3] - q[2]]
+    cp[n:, :3] = geom.points[0]
     cp[n:, 3] = 0.0
     starts = np.append(geom.segment_start, n).astype(np.uint32)
     params = mi.traverse(shape)

@@ -337,6 +337,15 @@ def bsdf_class(mi: Any) -> type:
             return t, x, y, slot
 
         @staticmethod
+        def _finite(si: Any) -> Any:
+            """Whether Mitsuba gave the hit a finite frame. Mitsuba 3.9.1 returns NaN tangents
+            for hits within about N 2^-24 of the end of a shape of N segments (see
+            curves.make_curve_shape); such a rare hit absorbs, rather than make a NaN pixel."""
+            t, wi = si.sh_frame.t, si.wi
+            return (dr.isfinite(t.x) & dr.isfinite(t.y) & dr.isfinite(t.z)
+                    & dr.isfinite(wi.x) & dr.isfinite(wi.y) & dr.isfinite(wi.z))
+
+        @staticmethod
         def _angles(w: Any, t: Any, x: Any, y: Any) -> tuple[Any, Any]:
             th = dr.asin(dr.clip(dr.dot(w, t), -1.0, 1.0))
             ph = dr.atan2(dr.dot(w, y), dr.dot(w, x))
@@ -395,21 +404,25 @@ def bsdf_class(mi: Any) -> type:
         def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
             if not ctx.is_enabled(Flags.GlossyReflection) and not ctx.is_enabled(Flags.GlossyTransmission):
                 return mi.Color3f(0.0)
+            active = active & self._finite(si)
             val, _, q = self._eval_pdf_world(si, si.to_world(wo), active)
             return dr.select(active, q * val, 0.0)
 
         def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            active = active & self._finite(si)
             _, pdf, q = self._eval_pdf_world(si, si.to_world(wo), active)
             q_eff = q if (self._pass and ctx.is_enabled(Flags.Null, 1)) else 1.0
             return dr.select(active, q_eff * pdf, 0.0)
 
         def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+            active = active & self._finite(si)
             val, pdf, q = self._eval_pdf_world(si, si.to_world(wo), active)
             q_eff = q if (self._pass and ctx.is_enabled(Flags.Null, 1)) else 1.0
             return dr.select(active, q * val, 0.0), dr.select(active, q_eff * pdf, 0.0)
 
         def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
             bs = dr.zeros(mi.BSDFSample3f)
+            active = active & self._finite(si)
             t, x, y, slot = self._frame(si, active)
             wv = si.to_world(si.wi)
             th_v, ph_v = self._angles(wv, t, x, y)
@@ -452,7 +465,7 @@ def bsdf_class(mi: Any) -> type:
                 pdf = dr.select(good, p / (2 * math.pi * fam.span * dr.maximum(ct, 1e-7)), pdf)
                 ok |= good
             wo = si.to_local(wl)
-            bs.wo = dr.select(ok, wo, -si.wi)
+            bs.wo = dr.select(ok, wo, dr.select(active, -si.wi, mi.Vector3f(0.0, 0.0, 1.0)))
             bs.pdf = dr.select(ok, q_eff * pdf, 1.0 - q_eff)
             bs.eta = 1.0
             bs.sampled_component = dr.select(ok, U(0), U(1))
@@ -479,12 +492,13 @@ def bsdf_class(mi: Any) -> type:
             """
             if not self._pass:
                 return mi.Color3f(0.0)
+            active = active & self._finite(si)
             t, x, y, slot = self._frame(si, active)
             th_v, ph_v = self._angles(si.to_world(si.wi), t, x, y)
             q = self._q(slot, th_v, ph_v, active)
             bx, by, bz = (dr.reinterpret_array(U, c) for c in (si.p.x, si.p.y, si.p.z))
             u = mi.sample_tea_float32(bx ^ ((bz << 16) | (bz >> 16)), by, 8)
-            return mi.Color3f(dr.select(u < q, 0.0, 1.0))
+            return mi.Color3f(dr.select(active & (u >= q), 1.0, 0.0))
 
         def to_string(self) -> str:
             return f"FiberBcsdf[families={[f is not None for f in self._fam]}, pass_through={getattr(self, '_pass', False)}]"
