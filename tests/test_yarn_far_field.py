@@ -142,22 +142,6 @@ def test_coverage_is_a_function_of_abs_theta(undyed_silk_yarn):
     assert cov[0] > cov[len(cov) // 2]
 
 
-def test_helical_mirror_symmetry(undyed_silk_yarn):
-    """z -> -z together with a mirror through the axis maps the twisted yarn onto itself:
-    p(theta_o, dphi | theta_i) = p(-theta_o, -dphi | -theta_i), within the batches' noise."""
-    ff = undyed_silk_yarn
-    g = ff.grid
-    p = ff.arrays["p"][:, 0].mean(axis=-1)
-    n_po = g.n_phi_o
-    # column j holds dphi in [(j - 1/2) s, (j + 1/2) s): its mirror -dphi is column (-j) mod n
-    mirrored = p[::-1, ::-1][:, :, (-np.arange(n_po)) % n_po]
-    dom = np.repeat(g.solid_angles(), n_po).reshape(g.n_theta_o, n_po)
-    for k in range(g.n_theta_i):
-        diff = np.sqrt((dom * (p[k] - mirrored[k]) ** 2).sum() / (dom * p[k] ** 2).sum())
-        noise = math.hypot(ff.arrays["rel_error"][k, 0], ff.arrays["rel_error"][-1 - k, 0])
-        assert diff < 2.0 * noise + 0.02, (k, diff, noise)
-
-
 def test_dye_darkens_the_yarn_more_than_one_fiber(silk):
     """A dyed yarn is darker than one of its fibers (light meets several fibers before it
     leaves), and darker for more dye; red dye keeps red brightest."""
