@@ -174,8 +174,9 @@ def yarn_piece(params: Any, fiber_diameter: float, settings: YarnBakeSettings, s
     """Expand a straight piece of the yarn ``params`` (scene units) for :func:`trace_far_field`.
 
     The piece is ``length_diameters`` bounding diameters long, rounded up to whole ply twists
-    (whole fiber twists for one ply), and expanded beyond both ends so that no fiber ends
-    inside it (the tracer only sees the fibers between the ends).
+    (whole fiber twists for one ply), and expanded beyond both ends so that the curves' end
+    segments lie outside it (the tracer only sees the fibers between the ends; staple fibers
+    still end inside, as they do in the yarn).
     """
     from usdfiber.translators.yarns import expand_yarn
 
@@ -192,7 +193,7 @@ def yarn_piece(params: Any, fiber_diameter: float, settings: YarnBakeSettings, s
     # Bounding radius over the part inside the piece (control points bound the B-spline).
     inside = (geom.points[:, 2] > -r_guess) & (geom.points[:, 2] < lz + r_guess)
     rb = float(np.max(np.hypot(geom.points[inside, 0], geom.points[inside, 1]))) + 0.5 * fiber_diameter
-    geom.points = (geom.points + np.array([0.0, 0.0, margin])) / rb - np.array([0.0, 0.0, margin / rb])
+    geom.points = geom.points / rb
     geom.radii = geom.radii / rb
     return YarnPiece(geom, lz / rb, rb, ex.curve_count)
 
