@@ -76,6 +76,14 @@ def bsdf_class(mi: Any) -> type:
     V4h = dr.float16_array_t(mi.Vector4f)
     Flags = mi.BSDFFlags
 
+    def _lin(v: Any, v0: float, step: float, n: int) -> tuple[Any, Any]:
+        """(k, w): the lower of n nodes v0 + i step around v (clamped) and the upper's weight."""
+        if n == 1:
+            return U(0), F(0.0)
+        u = dr.clip((v - v0) / step, 0.0, float(n - 1))
+        k = dr.minimum(U(dr.floor(u)), n - 2)
+        return k, u - F(k)
+
     def _dev(kind: Any, arr: np.ndarray) -> Any:
         """A device array that kernels read as data, not as baked-in constants."""
         x = kind(np.ascontiguousarray(arr))
@@ -127,19 +135,12 @@ def bsdf_class(mi: Any) -> type:
             return th, ph
 
         # -- interpolation ------------------------------------------------------------------
-        def _lin(self, v: Any, v0: float, step: float, n: int) -> tuple[Any, Any]:
-            if n == 1:
-                return U(0), F(0.0)
-            u = dr.clip((v - v0) / step, 0.0, float(n - 1))
-            k = dr.minimum(U(dr.floor(u)), n - 2)
-            return k, u - F(k)
-
         def _incoming(self, th_v: Any, ph_v: Any) -> tuple[Any, Any, Any, Any]:
             """(kt, tt, kp, tp): the lower theta_v and phi_v nodes and the upper ones' weights."""
-            kt, tt = self._lin(th_v, self.theta0, self.s, self.n_tv)
+            kt, tt = _lin(th_v, self.theta0, self.s, self.n_tv)
             if self.round:
                 return kt, tt, U(0), F(0.0)
-            kp, tp = self._lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+            kp, tp = _lin(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
             return kt, tt, kp, tp
 
         def _cell(self, slot: Any, kt: Any, kp: Any, i: Any, j: Any, active: Any) -> list[list[Any]]:
@@ -368,9 +369,7 @@ def bsdf_class(mi: Any) -> type:
                 w1 = dr.gather(F, self._width, base + j1, active)
                 q = (1.0 - a) * w0 + a * w1
             if self._has_coverage:
-                u = dr.clip((th_v + 0.5 * math.pi) * ((self._n_c - 1) / math.pi), 0.0, float(self._n_c - 1))
-                j0 = dr.minimum(U(dr.floor(u)), self._n_c - 2)
-                a = u - F(j0)
+                j0, a = _lin(th_v, -0.5 * math.pi, math.pi / (self._n_c - 1), self._n_c)
                 base = slot * self._n_c
                 c0 = dr.gather(F, self._coverage, base + j0, active)
                 c1 = dr.gather(F, self._coverage, base + j0 + 1, active)
