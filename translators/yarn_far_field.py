@@ -464,23 +464,9 @@ class YarnFarFieldCache:
         return Path(self.tables.root) / "yarns" / f"{key}.npz"
 
     def load(self, key: str) -> YarnFarField | None:
-        import warnings
-
-        from usdfiber.bake.cache import TableCacheWarning
-
-        path = self.path(key)
-        if not path.exists():
-            return None
-        try:
-            ff = YarnFarField.load(path)
-            if ff.header.get("geometry_key") != key:
-                raise table_format.TableError(path, "written for another cache key")
-            return ff
-        except (table_format.TableError, KeyError, ValueError) as exc:
-            reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
-            warnings.warn(f"{path}: {reason}; tracing it again", TableCacheWarning, stacklevel=2)
-            path.unlink(missing_ok=True)
-            return None
+        """The cached far field of ``key``, verified; None when absent or damaged (reported)."""
+        return self.tables.load_verified(self.path(key), YarnFarField.load,
+                                         lambda ff: ff.header.get("geometry_key") == key, "tracing it again")
 
     def get_or_bake(self, params: Any, fiber_diameter: float, slots: Sequence[Any],
                     settings: YarnBakeSettings | None = None, *, bake_missing: bool = True,

@@ -105,19 +105,25 @@ class TableCache:
         A damaged file (truncated, corrupt, checksum mismatch, foreign layout) is reported
         with a TableCacheWarning naming it and the reason, and deleted.
         """
-        path = self.table_path(key)
+        return self.load_verified(self.table_path(key), BcsdfTable.load,
+                                  lambda t: t.header.get("cache_key") in (None, key))
+
+    def load_verified(self, path: Path, read: Any, written_for_key: Any, redo: str = "baking it again") -> Any:
+        """``read(path)`` when the file exists, reads cleanly and ``written_for_key(result)``;
+        otherwise None, and a damaged file is reported (TableCacheWarning: the file, the
+        reason, ``redo``) and deleted. For every kind of file kept under this cache."""
         if not path.exists():
             return None
         try:
-            table = BcsdfTable.load(path)
-            if table.header.get("cache_key") not in (None, key):
+            obj = read(path)
+            if not written_for_key(obj):
                 raise TableLayoutError(f"{path}: written for another cache key")
-            return table
+            return obj
         except (table_format.TableError, TableLayoutError, KeyError, ValueError) as exc:
             reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
             if reason.startswith(str(path)):
                 reason = reason[len(str(path)):].lstrip(": ")
-            warnings.warn(f"{path}: {reason}; baking it again", TableCacheWarning, stacklevel=2)
+            warnings.warn(f"{path}: {reason}; {redo}", TableCacheWarning, stacklevel=3)
             try:
                 path.unlink()
             except FileNotFoundError:
