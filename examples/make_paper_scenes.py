@@ -35,8 +35,9 @@ from usdfiber import authoring as A
 from usdfiber import cloth
 from usdfiber.presets import FIBER_PRESETS, YARN_PRESETS
 
-MM_PER_UM = 1e-3
-CLASS_ROOT = "/_fiberClasses"
+# The example stages share one stage layout (mm, Y up, a default prim): make_examples.py's.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from make_examples import CLASS_ROOT, MM_PER_UM, _new_stage  # noqa: E402
 
 # Horizontal field of view of every camera here: focal length 50, aperture 36 (a 36 mm
 # "full frame" back; only the ratio matters), so the view is 2 * 0.36 units wide per unit
@@ -72,16 +73,6 @@ FIG5_DYE = "reactiveOrange"
 
 
 # ------------------------------------------------------------------------------- helpers
-def _new_stage(doc: str, default: str) -> Usd.Stage:
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    stage.GetRootLayer().documentation = doc
-    root = UsdGeom.Xform.Define(stage, default).GetPrim()
-    stage.SetDefaultPrim(root)
-    return stage
-
-
 def _set_extent(curves: UsdGeom.BasisCurves) -> None:
     curves.CreateExtentAttr(UsdGeom.Curves.ComputeExtent(curves.GetPointsAttr().Get(),
                                                          curves.GetWidthsAttr().Get()))
