@@ -340,6 +340,30 @@ def test_target_error_mode_reaches_target():
     assert int(t.arrays["photons"].min()) > 8000
 
 
+def test_grouped_directions_bake_the_same_table(monkeypatch):
+    """Directions traced together (shared tracer launches) give the table baked one direction
+    at a time, value for value: plain, target-error (directions needing different numbers of
+    extra batches) and box-sampled bakes, non-round and cuticle fibers."""
+    from usdfiber.bake import baker
+
+    silk = unit(profiles.builtin_profiles("silk", 1)[0])
+    cases = [(silk, None, BakeSettings(resolution_deg=30, photons=4000, batches=2)),
+             (silk, None, BakeSettings(resolution_deg=30, photons=2000, batches=2, target_error=0.07,
+                                       max_photons=12000)),
+             (silk, None, BakeSettings(resolution_deg=30, photons=2000, batches=2, incoming="box")),
+             (unit(profiles.circle()), (3.0, 0.02, 0.3), BakeSettings(resolution_deg=30, photons=2000, batches=2))]
+    for prof, cut, st in cases:
+        grouped = bake_table(prof, ETA, 6.5, cut, st)
+        monkeypatch.setattr(baker, "GROUP_DIRECTIONS", 1)
+        alone = bake_table(prof, ETA, 6.5, cut, st)
+        monkeypatch.undo()
+        assert grouped.arrays.keys() == alone.arrays.keys()
+        for k, v in alone.arrays.items():
+            np.testing.assert_array_equal(grouped.arrays[k], v, err_msg=k)
+        if st.target_error is not None:
+            assert len(np.unique(alone.arrays["photons"])) > 1   # the mode was exercised
+
+
 # ---------------------------------------------------------------------------------------------
 # Evaluation at arbitrary directions
 # ---------------------------------------------------------------------------------------------

@@ -18,6 +18,12 @@ the batch mean (at ``sigma_a = 0``). In ``target_error`` mode batches are added 
 estimate reaches the target (or ``max_photons``); the error of a Monte Carlo histogram
 falls as ``N^-1/2``, which sets how many more are needed.
 
+Directions are traced together: batch ``b`` of up to :data:`GROUP_DIRECTIONS` directions
+(about :data:`GROUP_PHOTONS` photons) is one tracer launch. Each direction still gets exactly
+its own photons, so a table does not depend on the grouping; what is shared is the tracer's
+fixed cost per launch (recording and launching its phases until the slowest photon is done),
+which dominated small-photon bakes such as the renderer's (bench/REPORT.md, "grouping").
+
 Normalization: an extruded fiber intercepts exactly the photons launched over its shadow
 ``W(phi_i)``; ``Lambda`` is surviving weight over photons that met the fiber (photons stopped
 by ``max_bounces`` are lost: with the default 4096 none was, while 256 lost up to 0.4% of a
@@ -275,48 +281,48 @@ class _Ctx:
     env_height: float
 
 
-def _trace_direction(ctx: _Ctx, ti: int, pi: int) -> dict[str, Any]:
-    from usdfiber.bake import tracer
+class _Direction:
+    """The histograms of one incoming direction, filled batch by batch."""
 
-    g, st = ctx.grid, ctx.settings
-    theta = float(g.theta_i_nodes()[ti])
-    phi = float(g.phi_i_nodes()[pi])
-    n_r, n_c = g.n_theta_o, g.n_phi_o
-    nb = n_r * n_c
-    K = len(ctx.levels_um)
-    H = np.zeros((K, nb))
-    G = np.zeros((K, nb))
-    batch_hist: list[np.ndarray] = []
-    batch_norm: list[float] = []
-    batch_weight: list[float] = []
-    n_b = max(1, int(math.ceil(int(st.photons) / int(st.batches))))
-    box = st.incoming == "box"
-    rng = np.random.default_rng([int(st.seed) & 0xFFFFFFFF, ti, pi, 7])
-    strata = (rng.permutation(int(st.batches)), rng.permutation(int(st.batches)))
-    wphi = 2 * math.pi * np.arange(len(ctx.width_env) + 1) / len(ctx.width_env)
-    wval = np.append(ctx.width_env, ctx.width_env[0])
-    stats = {"n_hit": 0, "n_cut": 0, "launched": 0, "leaks": 0, "misses": 0.0}
-    t0 = time.perf_counter()
+    def __init__(self, ctx: _Ctx, ti: int, pi: int) -> None:
+        g, st = ctx.grid, ctx.settings
+        self.ctx, self.ti, self.pi = ctx, ti, pi
+        self.theta = float(g.theta_i_nodes()[ti])
+        self.phi = float(g.phi_i_nodes()[pi])
+        self.nb = g.n_theta_o * g.n_phi_o
+        K = len(ctx.levels_um)
+        self.H = np.zeros((K, self.nb))
+        self.G = np.zeros((K, self.nb))
+        self.batch_hist: list[np.ndarray] = []
+        self.batch_norm: list[float] = []
+        self.batch_weight: list[float] = []
+        self.rng = np.random.default_rng([int(st.seed) & 0xFFFFFFFF, ti, pi, 7])
+        self.strata = (self.rng.permutation(int(st.batches)), self.rng.permutation(int(st.batches)))
+        self.stats = {"n_hit": 0, "n_cut": 0, "launched": 0, "leaks": 0, "misses": 0.0}
+        self.seconds = 0.0
+        self.queue = list(range(int(st.batches)))   # batches still to trace
+        self.next_batch = int(st.batches)
+        self.err = math.inf
 
-    def sub_direction(b: int) -> tuple[float, float]:
+    def sub_direction(self, b: int) -> tuple[float, float]:
         """The batch's light direction: the node, or a stratified point of its bin ("box")."""
-        if not box:
-            return theta, phi
+        g, st = self.ctx.grid, self.ctx.settings
+        if st.incoming != "box":
+            return self.theta, self.phi
         B = int(st.batches)
         if b < B:
-            u, v = (strata[0][b] + rng.random()) / B, (strata[1][b] + rng.random()) / B
+            u, v = (self.strata[0][b] + self.rng.random()) / B, (self.strata[1][b] + self.rng.random()) / B
         else:
-            u, v = rng.random(), rng.random()
-        lo, hi = math.sin(theta - 0.5 * g.step), math.sin(theta + 0.5 * g.step)
+            u, v = self.rng.random(), self.rng.random()
+        lo, hi = math.sin(self.theta - 0.5 * g.step), math.sin(self.theta + 0.5 * g.step)
         th = math.asin(min(1.0, max(-1.0, lo + u * (hi - lo))))   # uniform in solid angle
-        ph = phi if g.phi_invariant else phi + (v - 0.5) * g.step
+        ph = self.phi if g.phi_invariant else self.phi + (v - 0.5) * g.step
         return th, ph
 
-    def run_batch(b: int) -> None:
-        th_b, ph_b = sub_direction(b)
-        r = tracer.trace(ctx.fs, th_b, ph_b, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
-                         max_bounces=int(st.max_bounces), seed=_batch_seed(st.seed, b),
-                         cuticle=ctx.cuticle)
+    def add(self, r: Any, th_b: float, ph_b: float) -> None:
+        """Bin one traced batch at every absorption level."""
+        ctx = self.ctx
+        g, nb, K = ctx.grid, self.nb, len(ctx.levels_um)
         idx = g.bin_index(r.directions)
         L = r.path_length.astype(np.float64)
         alive = ~np.asarray(r.cut, dtype=bool)
@@ -327,6 +333,8 @@ def _trace_direction(ctx: _Ctx, ti: int, pi: int) -> dict[str, Any]:
             w = np.where(alive, w, 0.0)
             h[k] = np.bincount(idx, weights=w, minlength=nb)
             gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+        wphi = 2 * math.pi * np.arange(len(ctx.width_env) + 1) / len(ctx.width_env)
+        wval = np.append(ctx.width_env, ctx.width_env[0])
         if ctx.cuticle is None:
             norm = float(r.n_hit)
         else:
@@ -337,28 +345,31 @@ def _trace_direction(ctx: _Ctx, ti: int, pi: int) -> dict[str, Any]:
             fwd = int(g.bin_index(np.array([[-math.cos(th_b) * math.cos(ph_b), -math.cos(th_b) * math.sin(ph_b),
                                               -math.sin(th_b)]]))[0])
             h[:, fwd] += miss
-            stats["misses"] += miss
+            self.stats["misses"] += miss
         # Each batch weighs as the power its beam carries: photons that met the fiber for a
         # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin.
+        box = ctx.settings.incoming == "box"
         weight = norm if not box else float(np.interp(ph_b % (2 * math.pi), wphi, wval)) * math.cos(th_b)
         scale = weight / norm if norm > 0 else 0.0
-        H[:] += scale * h
-        G[:] += scale * gl
-        batch_hist.append(h[0])
-        batch_norm.append(norm)
-        batch_weight.append(weight)
-        stats["n_hit"] += int(r.n_hit)
-        stats["n_cut"] += int(r.n_cut)
-        stats["launched"] += int(r.n_launched)
-        stats["leaks"] += int(r.extra.get("leaks", 0)) if isinstance(r.extra, dict) else 0
+        self.H += scale * h
+        self.G += scale * gl
+        self.batch_hist.append(h[0])
+        self.batch_norm.append(norm)
+        self.batch_weight.append(weight)
+        self.stats["n_hit"] += int(r.n_hit)
+        self.stats["n_cut"] += int(r.n_cut)
+        self.stats["launched"] += int(r.n_launched)
+        self.stats["leaks"] += int(r.extra.get("leaks", 0)) if isinstance(r.extra, dict) else 0
+        self.seconds += float(r.seconds)
 
-    dom = np.repeat(g.solid_angles(), n_c)
-
-    def error() -> float:
-        ps = np.stack([h / max(n, 1e-300) for h, n in zip(batch_hist, batch_norm)]) / dom
+    def error(self) -> float:
+        """Relative L2 error of p from the spread between batches (see the module docstring)."""
+        g = self.ctx.grid
+        dom = np.repeat(g.solid_angles(), g.n_phi_o)
+        ps = np.stack([h / max(n, 1e-300) for h, n in zip(self.batch_hist, self.batch_norm)]) / dom
         if g.phi_invariant:
-            ps = _mirror_phi(ps.reshape(len(ps), n_r, n_c)).reshape(len(ps), nb)
-        w = np.asarray(batch_weight, dtype=np.float64)
+            ps = _mirror_phi(ps.reshape(len(ps), g.n_theta_o, g.n_phi_o)).reshape(len(ps), self.nb)
+        w = np.asarray(self.batch_weight, dtype=np.float64)
         w = w / w.sum()
         mean = w @ ps
         nB = len(ps)
@@ -367,42 +378,87 @@ def _trace_direction(ctx: _Ctx, ti: int, pi: int) -> dict[str, Any]:
         den = float((dom * mean ** 2).sum())
         return float(math.sqrt((dom * var).sum() / den)) if den > 0 else float("inf")
 
-    for b in range(int(st.batches)):
-        run_batch(b)
-    err = error()
-    if st.target_error is not None:
-        b = int(st.batches)
-        while err > st.target_error and b * n_b < int(st.max_photons):
-            need = b * n_b * (err / float(st.target_error)) ** 2 * 1.05
-            extra = int(math.ceil(need / n_b)) - b
-            extra = max(1, min(extra, int(st.max_photons) // n_b - b))
-            for _ in range(extra):
-                run_batch(b)
-                b += 1
-            err = error()
+    def plan_more(self, n_b: int) -> None:
+        """After the queued batches: queue as many more as the target error needs."""
+        st = self.ctx.settings
+        self.err = self.error()
+        b = self.next_batch
+        if st.target_error is None or not (self.err > st.target_error and b * n_b < int(st.max_photons)):
+            return
+        need = b * n_b * (self.err / float(st.target_error)) ** 2 * 1.05
+        extra = int(math.ceil(need / n_b)) - b
+        extra = max(1, min(extra, int(st.max_photons) // n_b - b))
+        self.queue = list(range(b, b + extra))
+        self.next_batch = b + extra
 
-    norm = float(sum(batch_weight))
-    H = H.reshape(K, n_r, n_c)
-    G = G.reshape(K, n_r, n_c)
-    if g.phi_invariant:
-        H, G = _mirror_phi(H), _mirror_phi(G)
-    nz = np.flatnonzero(H[0].sum(axis=-1) > 0)
-    r0, r1 = (int(nz[0]), int(nz[-1]) + 1) if nz.size else (0, 1)
-    return {
-        "rows": (r0, r1),
-        "H": H[:, r0:r1].astype(np.float32),
-        "G": G[:, r0:r1].astype(np.float32),
-        "norm": norm,
-        "photons": int(stats["launched"]),
-        "n_hit": stats["n_hit"],
-        "n_cut": stats["n_cut"],
-        "leaks": stats["leaks"],
-        "misses": stats["misses"],
-        "rel_error": err,
-        "seconds": time.perf_counter() - t0,
-        "theta_i": theta,
-        "phi_i": phi,
-    }
+    def result(self) -> dict[str, Any]:
+        g = self.ctx.grid
+        n_r, n_c = g.n_theta_o, g.n_phi_o
+        K = len(self.ctx.levels_um)
+        H = self.H.reshape(K, n_r, n_c)
+        G = self.G.reshape(K, n_r, n_c)
+        if g.phi_invariant:
+            H, G = _mirror_phi(H), _mirror_phi(G)
+        nz = np.flatnonzero(H[0].sum(axis=-1) > 0)
+        r0, r1 = (int(nz[0]), int(nz[-1]) + 1) if nz.size else (0, 1)
+        return {
+            "rows": (r0, r1),
+            "H": H[:, r0:r1].astype(np.float32),
+            "G": G[:, r0:r1].astype(np.float32),
+            "norm": float(sum(self.batch_weight)),
+            "photons": int(self.stats["launched"]),
+            "n_hit": self.stats["n_hit"],
+            "n_cut": self.stats["n_cut"],
+            "leaks": self.stats["leaks"],
+            "misses": self.stats["misses"],
+            "rel_error": self.err,
+            "seconds": self.seconds,
+            "theta_i": self.theta,
+            "phi_i": self.phi,
+        }
+
+
+#: Photons per shared tracer launch when directions are traced together (the tracer's batch).
+GROUP_PHOTONS = 1 << 21
+#: At most this many directions are traced (and held in memory) together.
+GROUP_DIRECTIONS = 64
+
+
+def _photons_per_batch(st: BakeSettings) -> int:
+    return max(1, int(math.ceil(int(st.photons) / int(st.batches))))
+
+
+def _trace_directions(ctx: _Ctx, dirs: list[tuple[int, int]]) -> list[dict[str, Any]]:
+    """Trace incoming directions together: batch ``b`` of every direction in one launch.
+
+    Each direction gets exactly the photons it would get alone (batch ``b`` is the tracer
+    stream ``_batch_seed(seed, b)`` for every direction), so a table does not depend on how
+    its directions were grouped; grouping only shares the tracer's fixed cost per launch.
+    """
+    from usdfiber.bake import tracer
+
+    st = ctx.settings
+    n_b = _photons_per_batch(st)
+    accs = [_Direction(ctx, ti, pi) for ti, pi in dirs]
+    while True:
+        todo = [a for a in accs if a.queue]
+        if not todo:
+            break
+        batch = [(a, a.queue.pop(0)) for a in todo]
+        subs = [a.sub_direction(b) for a, b in batch]
+        res = tracer.trace_many(ctx.fs, subs, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
+                                max_bounces=int(st.max_bounces), seed=[_batch_seed(st.seed, b) for _, b in batch],
+                                cuticle=ctx.cuticle, batch=GROUP_PHOTONS)
+        for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
+            a.add(r, th_b, ph_b)
+            if not a.queue:
+                a.plan_more(n_b)
+    return [a.result() for a in accs]
+
+
+def _trace_direction(ctx: _Ctx, ti: int, pi: int) -> dict[str, Any]:
+    """One incoming direction on its own (see :func:`_trace_directions`)."""
+    return _trace_directions(ctx, [(ti, pi)])[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -464,6 +520,22 @@ def _prepare_resume_dir(resume_dir: Path, fingerprint: dict[str, Any]) -> None:
 # bake_table
 # ---------------------------------------------------------------------------------------------
 
+def _context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, float, float] | None,
+             st: BakeSettings) -> _Ctx:
+    """The traced scene, grid and absorption levels of one table (inputs already checked)."""
+    from usdfiber.bake import tracer
+
+    diameter = float(profile.circumscribed_diameter)
+    grid = Grid(st.resolution_deg, theta_symmetric=cut is None,
+                phi_invariant=is_rotationally_symmetric(profile))
+    levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # mesh remarks on cuticle shapes
+        fs = tracer.prepare(profile, cut)
+    width_env = _envelope_width(profile, cut[1] if cut else 0.0)
+    return _Ctx(fs, grid, st, float(eta), float(beta_deg), cut, levels_um, width_env, cut[1] if cut else 0.0)
+
+
 def bake_table(profile: Any, eta: float, beta_deg: float,
                cuticle: tuple[float, float, float] | None = None,
                settings: BakeSettings | None = None, progress: ProgressFn | None = None,
@@ -477,8 +549,6 @@ def bake_table(profile: Any, eta: float, beta_deg: float,
     at the profile's size, or None. ``header``: extra header entries (geometry key,
     inputs, variant, ...). See the module docstring for ``progress`` and ``resume_dir``.
     """
-    from usdfiber.bake import tracer
-
     st = settings or BakeSettings()
     if not (math.isfinite(eta) and eta >= 1.0):
         raise BakeError(f"eta must be >= 1, got {eta}")
@@ -487,15 +557,8 @@ def bake_table(profile: Any, eta: float, beta_deg: float,
     cut = None
     if cuticle is not None and float(cuticle[1]) > 0.0:
         cut = (float(cuticle[0]), float(cuticle[1]), float(cuticle[2]))
-    diameter = float(profile.circumscribed_diameter)
-    grid = Grid(st.resolution_deg, theta_symmetric=cut is None,
-                phi_invariant=is_rotationally_symmetric(profile))
-    levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # mesh remarks on cuticle shapes
-        fs = tracer.prepare(profile, cut)
-    width_env = _envelope_width(profile, cut[1] if cut else 0.0)
-    ctx = _Ctx(fs, grid, st, float(eta), float(beta_deg), cut, levels_um, width_env, cut[1] if cut else 0.0)
+    ctx = _context(profile, eta, beta_deg, cut, st)
+    grid, levels_um, width_env = ctx.grid, ctx.levels_um, ctx.width_env
 
     n_ti, n_pi = grid.n_theta_i, grid.n_phi_i
     total = n_ti * n_pi
@@ -534,11 +597,13 @@ def _bake_directions(profile, eta, beta_deg, cut, st, grid, ctx, levels_um, widt
     if progress is not None:
         progress(len(done_from_disk), total, {"event": "start", "resumed": len(done_from_disk), "total": total})
     done = len(done_from_disk)
-    for ti in range(n_ti):
-        for pi in range(n_pi):
-            if (ti, pi) in done_from_disk:
-                continue
-            data = _trace_direction(ctx, ti, pi)
+    todo = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi) if (ti, pi) not in done_from_disk]
+    # Directions are traced in groups that share tracer launches (about GROUP_PHOTONS photons
+    # per batch); each finished group is saved before the next starts.
+    group = max(1, min(GROUP_DIRECTIONS, GROUP_PHOTONS // _photons_per_batch(st)))
+    for g0 in range(0, len(todo), group):
+        dirs = todo[g0:g0 + group]
+        for (ti, pi), data in zip(dirs, _trace_directions(ctx, dirs)):
             if rdir is not None:
                 _save_chunk(rdir, ti, pi, data)
             else:

@@ -35,14 +35,14 @@ a crack and is nudged and traced once more. ``TraceResult.extra["leaks"]`` count
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from usdfiber.backend import mitsuba
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
 
-__all__ = ["FiberScene", "TraceResult", "prepare", "trace"]
+__all__ = ["FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
 
 
 @dataclass
@@ -240,16 +240,37 @@ def _gather_state(mi: Any, dr: Any, s: dict, idx: Any) -> dict:
     return out
 
 
-def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: float, eta: float,
-                 alpha: float, max_bounces: int, max_steps: int, seed: int, lo: float, width: float,
-                 mode: str, phase_steps: int = 8) -> dict:
-    """Trace ``n`` photons (global indices first..first+n-1).
+@dataclass
+class _Launch:
+    """The photons of one tracer launch: lane -> incoming direction and random stream.
 
-    Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces`` and the counters
-    ``leaks`` and ``forced``. The loop runs in phases of ``phase_steps`` iterations; between
+    ``beams`` holds one row per incoming direction: the unit propagation direction
+    ``-omega_i`` (3), ``u = (cos phi_i, sin phi_i)`` (2), and the launch interval along
+    ``u_perp``: its start and width (2), float32 like the kernel. Lane ``l`` belongs to
+    direction ``beam[l]`` and is photon ``photon[l]`` of that direction's stream ``mix[l]``.
+    """
+
+    beams: np.ndarray      # (n_dirs, 7) float32
+    beam: np.ndarray       # (n,) uint32
+    photon: np.ndarray     # (n,) uint64
+    mix: np.ndarray        # (n,) uint64
+
+    @property
+    def size(self) -> int:
+        return int(len(self.beam))
+
+
+def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, max_bounces: int,
+                 max_steps: int, mode: str, phase_steps: int = 8) -> dict:
+    """Trace the photons of ``launch`` (any mix of incoming directions) in one kernel.
+
+    Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces``, ``leaks`` and
+    ``forced`` per lane. The loop runs in phases of ``phase_steps`` iterations; between
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
-    the macro surface are drawn by the exact float64 inversion on just those lanes.
+    the macro surface are drawn by the exact float64 inversion on just those lanes. Directions
+    and seeds are data, not literals, so one compiled kernel serves every direction and batch,
+    and many directions share each phase's fixed cost.
     """
     mi = mitsuba()
     import drjit as dr
@@ -267,11 +288,10 @@ def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: f
     eta_o = dr.opaque(F, float(eta))
     inv_eta_o = dr.opaque(F, 1.0 / float(eta))
     alpha_o = dr.opaque(F, float(max(alpha, 1e-4)))
-    cti, sti = float(np.cos(theta_i)), float(np.sin(theta_i))
-    cpi, spi = float(np.cos(phi_i)), float(np.sin(phi_i))
-    d0 = [dr.opaque(F, -cti * cpi), dr.opaque(F, -cti * spi), dr.opaque(F, -sti)]
-    ux, uy = dr.opaque(F, cpi), dr.opaque(F, spi)
-    lo_o, w_o = dr.opaque(F, lo), dr.opaque(F, width)
+    n = launch.size
+    beam = U(launch.beam)
+    col = [dr.gather(F, F(np.ascontiguousarray(launch.beams[:, k])), beam) for k in range(7)]
+    d0, ux, uy, lo_o, w_o = col[0:3], col[3], col[4], col[5], col[6]
     rb_o, zp_o, eps_o = dr.opaque(F, rb), dr.opaque(F, zp), dr.opaque(F, eps)
     zs_o = dr.opaque(F, 0.8 * zp)             # extruded: spread of the tracing planes
     maxb, maxs = dr.opaque(U, max_bounces), dr.opaque(U, max_steps)
@@ -279,8 +299,9 @@ def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: f
     scene, faces, vnorm, fnorm = fs.scene, fs.faces, fs.normals, fs.face_normals
     distr = mi.MicrofacetDistribution(mi.MicrofacetType.Beckmann, alpha_o, True) if rough else None
 
-    mix = _seed_mix(seed)
-    rng = mi.PCG32(size=n, initstate=mi.UInt64(mix + first), initseq=mi.UInt64((mix >> 1) + first))
+    # Photon i of stream mix: the stream PCG32(size, mix, mix >> 1) gives its lane i.
+    rng = mi.PCG32(size=n)
+    rng.seed(initstate=mi.UInt64(launch.mix + launch.photon), initseq=mi.UInt64((launch.mix >> np.uint64(1)) + launch.photon))
 
     # Launch: offset h along u_perp = (-sin phi, cos phi) over [lo, lo + width].
     h0 = lo_o + w_o * rng.next_float32()
@@ -505,7 +526,7 @@ def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: f
     out_hit = dr.full(B, False, n)
     out_cut = dr.full(B, False, n)
     out_b = dr.zeros(U, n)
-    counters = {"leaks": 0, "forced": 0}
+    counters = {k: dr.zeros(U, n) for k in ("leaks", "forced") if k in st}
     limit = 0
     while True:
         limit += int(phase_steps)
@@ -532,20 +553,18 @@ def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: f
         size = dr.width(act)
         if n_act == 0 or n_act < size // 2:
             # Write every lane's current outcome (finished lanes are final), then keep the rest.
-            done = ~act
             dr.scatter(out_d, st["d"], st["idx"])
             dr.scatter(out_L, st["L"], st["idx"])
             dr.scatter(out_hit, st["hit_any"], st["idx"])
             dr.scatter(out_cut, st["cut"], st["idx"])
             dr.scatter(out_b, st["bounces"], st["idx"])
-            for k in counters:
-                if k in st:
-                    counters[k] += int(dr.sum(dr.select(done, st[k], 0))[0])
+            for k, out in counters.items():
+                dr.scatter(out, st[k], st["idx"])
             if n_act == 0:
                 break
             st = _gather_state(mi, dr, st, dr.compress(act))
-            dr.eval(out_d, out_L, out_hit, out_cut, out_b, st)
-    dr.eval(out_d, out_L, out_hit, out_cut, out_b)
+            dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters, st)
+    dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters)
     dn = np.asarray(out_d.numpy())
     return {
         "d": dn.T if dn.ndim == 2 and dn.shape[0] == 3 and dn.shape[1] == n else dn,
@@ -553,7 +572,8 @@ def _trace_batch(fs: FiberScene, n: int, first: int, *, theta_i: float, phi_i: f
         "hit_any": np.asarray(out_hit.numpy()).astype(bool),
         "cut": np.asarray(out_cut.numpy()).astype(bool),
         "bounces": np.asarray(out_b.numpy()),
-        **counters,
+        **{k: (np.asarray(counters[k].numpy()) if k in counters else np.zeros(n, np.uint32))
+           for k in ("leaks", "forced")},
     }
 
 
@@ -584,7 +604,38 @@ def trace(
     compacts after each (1.5x slower on 2 CPU cores; may differ on a GPU). Both give identical
     photons for a given ``seed``, whatever ``batch`` is. ``max_steps`` bounds loop iterations
     including periodic wraps (cuticle fibers at grazing angles); photons stopped by it or by
-    ``max_bounces`` are reported as cut.
+    ``max_bounces`` are reported as cut. Many directions are faster together:
+    :func:`trace_many`.
+    """
+    return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
+                      max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
+                      max_steps=max_steps)[0]
+
+
+def trace_many(
+    profile: Any,
+    directions: Sequence[tuple[float, float]],
+    n_photons: int | Sequence[int],
+    *,
+    eta: float,
+    beta_deg: float,
+    max_bounces: int = 256,
+    seed: int | Sequence[int] = 0,
+    cuticle: tuple[float, float, float] | None = None,
+    batch: int = 1 << 21,
+    mode: str = "symbolic",
+    max_steps: int | None = None,
+) -> list[TraceResult]:
+    """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
+
+    ``n_photons`` and ``seed`` are one value or one per direction. Direction ``j`` gets exactly
+    the photons ``trace(profile, *directions[j], n_photons[j], seed=seed[j], ...)`` would
+    trace (same random streams, same arithmetic); only the launches are shared: the
+    photons of all directions are traced ``batch`` lanes at a time, so the fixed cost of a
+    launch (its phases run until the slowest photon is done, each recorded and launched
+    anew) is paid once per ``batch`` photons rather than once per direction. A result's
+    ``seconds`` is the call's wall time shared out by photon count. Other arguments: see
+    :func:`trace`.
     """
     import time
 
@@ -594,19 +645,33 @@ def trace(
     fs = profile if isinstance(profile, FiberScene) else prepare(profile, cuticle)
     if cuticle is not None and fs.cuticle != tuple(cuticle):
         raise ValueError("the prepared FiberScene was built with a different cuticle")
-    theta_i, phi_i = float(theta_i), float(phi_i)
+    dirs = [(float(t), float(p)) for t, p in directions]
+    nd = len(dirs)
+    if nd == 0:
+        return []
+    counts = np.broadcast_to(np.asarray(n_photons, dtype=np.int64), (nd,)).copy()
+    seeds = np.broadcast_to(np.asarray(seed, dtype=object), (nd,))
     if not eta > 0.0:
         raise ValueError("eta must be > 0")
-    if int(n_photons) <= 0:
+    if np.any(counts <= 0):
         raise ValueError("n_photons must be > 0")
     if not 0.0 <= beta_deg < 90.0:
         raise ValueError("beta_deg must be in [0, 90)")
-    lo, hi = profile_bounds(fs.profile, phi_i)
-    W = _projected_width(fs.profile, phi_i)
-    # Margin: the polygon's shadow may differ slightly from W, and scales stick out of the loop.
+    # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
+    beams = np.empty((nd, 7), dtype=np.float64)
+    widths = np.empty((nd, 2), dtype=np.float64)     # W(phi_i), launch width
     extra = fs.cuticle[1] if fs.cuticle is not None else 0.0
-    margin = 0.01 * W + extra + 1e-3
-    lo_l, width = lo - margin, (hi - lo) + 2.0 * margin
+    for j, (th, ph) in enumerate(dirs):
+        lo, hi = profile_bounds(fs.profile, ph)
+        W = _projected_width(fs.profile, ph)
+        # Margin: the polygon's shadow may differ slightly from W, and scales stick out of the loop.
+        margin = 0.01 * W + extra + 1e-3
+        lo_l, width = lo - margin, (hi - lo) + 2.0 * margin
+        cti, sti, cpi, spi = float(np.cos(th)), float(np.sin(th)), float(np.cos(ph)), float(np.sin(ph))
+        beams[j] = (-cti * cpi, -cti * spi, -sti, cpi, spi, lo_l, width)
+        widths[j] = (W, width)
+    beams32 = beams.astype(np.float32)
+    mixes = np.array([_seed_mix(int(s)) for s in seeds], dtype=np.uint64)
     alpha = float(np.tan(np.radians(beta_deg))) if beta_deg > 0.0 else 0.0
     if max_steps is None:
         # A safety net only: boundary hits, microsurface events (256 per hit) and z-wraps have
@@ -614,39 +679,50 @@ def trace(
         max_steps = 1 << 17
 
     t0 = time.perf_counter()
-    dirs, lens, cuts, bnc = [], [], [], []
-    n_hit = 0
-    n_leaks = 0
-    n_forced = 0
-    for first in range(0, int(n_photons), int(batch)):
-        n = min(int(batch), int(n_photons) - first)
-        out = _trace_batch(
-            fs, n, first, theta_i=theta_i, phi_i=phi_i, eta=float(eta), alpha=alpha,
-            max_bounces=int(max_bounces), max_steps=int(max_steps), seed=int(seed),
-            lo=lo_l, width=width, mode=mode)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    total = int(starts[-1])
+    kept: dict[str, list[np.ndarray]] = {"beam": [], "d": [], "L": [], "cut": [], "bounces": []}
+    n_hit = np.zeros(nd, dtype=np.int64)
+    n_leaks = np.zeros(nd, dtype=np.int64)
+    n_forced = np.zeros(nd, dtype=np.int64)
+    for a in range(0, total, int(batch)):
+        b = min(a + int(batch), total)
+        lane = np.arange(a, b, dtype=np.int64)
+        beam = (np.searchsorted(starts, lane, side="right") - 1).astype(np.uint32)
+        launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam])
+        out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
+                           max_steps=int(max_steps), mode=mode)
         hit = out["hit_any"]
-        dirs.append(out["d"][hit])
-        lens.append(out["L"][hit])
-        cuts.append(out["cut"][hit])
-        bnc.append(out["bounces"][hit])
-        n_hit += int(hit.sum())
-        n_leaks += out["leaks"]
-        n_forced += out["forced"]
+        n_hit += np.bincount(beam, weights=hit, minlength=nd).astype(np.int64)
+        n_leaks += np.bincount(beam, weights=out["leaks"], minlength=nd).astype(np.int64)
+        n_forced += np.bincount(beam, weights=out["forced"], minlength=nd).astype(np.int64)
+        kept["beam"].append(beam[hit])
+        kept["d"].append(out["d"][hit])
+        kept["L"].append(out["L"][hit])
+        kept["cut"].append(out["cut"][hit])
+        kept["bounces"].append(out["bounces"][hit])
     dr.sync_thread()
     seconds = time.perf_counter() - t0
-    return TraceResult(
-        directions=np.ascontiguousarray(np.concatenate(dirs), dtype=np.float32),
-        path_length=np.concatenate(lens).astype(np.float32),
-        cut=np.concatenate(cuts),
-        bounces=np.concatenate(bnc).astype(np.uint32),
-        n_launched=int(n_photons),
-        n_hit=n_hit,
-        beam_width=W,
-        launch_width=width,
-        theta_i=theta_i,
-        phi_i=phi_i,
-        eta=float(eta),
-        beta_deg=float(beta_deg),
-        seconds=seconds,
-        extra={"leaks": n_leaks, "forced": n_forced},
-    )
+    cat = {k: np.concatenate(v) for k, v in kept.items()}
+    # Lanes are in direction order, so each direction's photons are one contiguous run.
+    cuts = np.searchsorted(cat["beam"], np.arange(nd + 1), side="left")
+    results = []
+    for j, (th, ph) in enumerate(dirs):
+        r = slice(cuts[j], cuts[j + 1])
+        results.append(TraceResult(
+            directions=np.ascontiguousarray(cat["d"][r], dtype=np.float32),
+            path_length=cat["L"][r].astype(np.float32),
+            cut=cat["cut"][r].astype(bool),
+            bounces=cat["bounces"][r].astype(np.uint32),
+            n_launched=int(counts[j]),
+            n_hit=int(n_hit[j]),
+            beam_width=float(widths[j, 0]),
+            launch_width=float(widths[j, 1]),
+            theta_i=th,
+            phi_i=ph,
+            eta=float(eta),
+            beta_deg=float(beta_deg),
+            seconds=seconds * float(counts[j]) / total,
+            extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j])},
+        ))
+    return results
