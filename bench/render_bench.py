@@ -11,13 +11,23 @@ average before and after, the git HEAD and the SHA-256 of the renderer's sources
 * ``timing``: time per sample per pixel on IDENTICAL curves. The scene is a mat of 10,000
   straight-ish fibers (B-splines, 5 segments each) in one ``bsplinecurve`` shape, a perspective
   camera, a constant dome plus a directional light, max_depth 8, 256 x 256. The integrator is
-  the one ``translate_stage`` picks for the BSDF: ``volpath`` when it lets rays pass (a
-  ``Null`` component: non-round fibers), else ``path``.
+  the one ``translate_stage`` picks for the BSDF (``scene.fiber_integrator``): ``usdfiber_path``
+  (``translators/integrator.py``) when it lets rays pass (a ``Null`` component: non-round
+  fibers), else ``path``.
   BSDFs: ``usdfiber_bcsdf`` with a round polyester table and with a non-round silk table,
-  ``hair``, and ``diffuse`` as a floor. Profiling variants: silk with ``path`` (opaque shadow
-  rays), with pass-through off, and with the table on its coarse native grid; polyester and
-  ``hair`` with ``volpath``. ``--cases`` times a subset (``hair``, the reference of every
-  ratio, always). Timing uses ``dr.eval(img); dr.sync_thread()``. A
+  ``hair``, and ``diffuse`` as a floor. Silk also with ``volpath`` (the previous choice, the
+  reference of its error check) and with ``usdfiber_path`` deciding pass-throughs in the
+  BSDF's ``sample`` (``fiber_pass`` false). Profiling variants: silk with ``path`` (opaque
+  shadow rays), with pass-through off, and with the table on its coarse native grid;
+  polyester and ``hair`` with ``volpath``, ``hair`` with ``usdfiber_path`` (with
+  ``null_shadows`` false it draws ``path``'s samples: the Python integrator's own cost; as is,
+  hair's ``Null`` component makes its shadow rays walk through the curves).
+  ``--cases`` times a subset (``hair``, the reference of every ratio, always). Error at the
+  timed spp: each round keeps every case's high-spp image (seeds distinct per case and
+  round); the rounds give each case's noise (relative RMS difference between rounds, per
+  image) and compare silk under ``usdfiber_path`` with ``volpath`` block by block (the ratio
+  R of the squared block differences to their variance estimated from the rounds, about 1
+  for equal images). Timing uses ``dr.eval(img); dr.sync_thread()``. A
   warm-up render comes first, and its kernel compile time (Dr.Jit's kernel history) is reported
   separately. The compile is cold: ``HOME`` points to an empty directory, so Dr.Jit's on-disk
   kernel cache starts empty (``--warm-kernel-cache`` keeps it). Time per spp is the slope of
@@ -68,7 +78,7 @@ if str(ROOT) not in sys.path:
 
 RESULTS = ROOT / "bench" / "results"
 SOURCES = ("translators/fiber_bsdf.py", "translators/fiber_bank.py", "translators/curves.py",
-           "translators/fibers.py", "translators/scene.py", "usdfiber/render.py")
+           "translators/fibers.py", "translators/scene.py", "translators/integrator.py", "usdfiber/render.py")
 TARGETS = {"time_per_spp_ratio_vs_hair": 1.3, "translate_seconds_1M_segments": 10.0}
 
 # Tables: polyester as `usdfiber render` bakes it on demand (RENDER_BAKE_SETTINGS: 6 deg,
@@ -141,7 +151,7 @@ def matched_hair(mi: Any, eta: float, beta_deg: float) -> Any:
 
 
 def mat_scene(mi: Any, geom: Any, length: float, bsdf: Any, res: int, max_depth: int = 8,
-              integrator: str = "path") -> Any:
+              integrator: str | dict = "path") -> Any:
     from usdfiber.translators.curves import make_curve_shape
 
     d = mat_scene_dict(mi, length, res, max_depth, integrator)
@@ -149,11 +159,14 @@ def mat_scene(mi: Any, geom: Any, length: float, bsdf: Any, res: int, max_depth:
     return mi.load_dict(d)
 
 
-def mat_scene_dict(mi: Any, length: float, res: int, max_depth: int = 8, integrator: str = "path") -> dict[str, Any]:
+def mat_scene_dict(mi: Any, length: float, res: int, max_depth: int = 8,
+                   integrator: str | dict = "path") -> dict[str, Any]:
+    """The mat's scene without the fibers; ``integrator``: a type, or a dict of properties."""
     origin = [0.0, -0.6 * length, 1.1 * length]
+    integ = dict(integrator) if isinstance(integrator, dict) else {"type": integrator}
     return {
         "type": "scene",
-        "integrator": {"type": integrator, "max_depth": max_depth},
+        "integrator": {"max_depth": max_depth, **integ},
         "sensor": {"type": "perspective", "fov": 45.0,
                    "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=[0.0, 0.0, -0.04 * length],
                                                                up=[0.0, 0.0, 1.0]),
@@ -197,9 +210,48 @@ TRANSLATOR = "translator"
 
 
 def translator_integrator(mi: Any, bsdf: Any) -> str:
-    """The integrator ``translate_stage`` uses for fibers with ``bsdf``: ``volpath`` when the
-    BSDF has a null (pass-through) component, whose shadow rays it attenuates; else ``path``."""
-    return "volpath" if mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null) else "path"
+    """The integrator ``translate_stage`` uses for fibers with ``bsdf``: ``usdfiber_path`` when
+    the BSDF has a null (pass-through) component, whose shadow rays it passes; else ``path``."""
+    from usdfiber.translators.scene import fiber_integrator
+
+    return fiber_integrator(mi, bsdf)
+
+
+def integrator_label(integ: str | dict) -> str:
+    if isinstance(integ, str):
+        return integ
+    extra = ", ".join(f"{k} {str(v).lower()}" for k, v in integ.items() if k != "type")
+    return f"{integ['type']} ({extra})" if extra else integ["type"]
+
+
+def compare_images(a: list[np.ndarray], b: list[np.ndarray], block: int = 16) -> dict[str, float]:
+    """Two cases' images, one per round (independent seeds): are they the same image?
+
+    Per block of ``block`` x ``block`` pixels and channel, d is the difference of the two
+    cases' means over the rounds, and v its variance estimated from each case's spread over
+    the rounds (sample variance / rounds, summed). R = sum d^2 / sum v is about 1 when both
+    render the same image (2 / sqrt(blocks) is its order of fluctuation); z is the difference
+    of the image means in standard deviations estimated the same way.
+    """
+    def blocks(img: np.ndarray) -> np.ndarray:
+        h, w, c = img.shape
+        return img[: h - h % block, : w - w % block].reshape(h // block, block, w // block, block, c).mean(axis=(1, 3))
+
+    ba, bb = np.stack([blocks(x) for x in a]), np.stack([blocks(x) for x in b])
+    d = ba.mean(axis=0) - bb.mean(axis=0)
+    v = ba.var(axis=0, ddof=1) / len(a) + bb.var(axis=0, ddof=1) / len(b)
+    ma, mb = np.array([x.mean() for x in a]), np.array([x.mean() for x in b])
+    sd = math.sqrt(ma.var(ddof=1) / len(a) + mb.var(ddof=1) / len(b))
+    return {"R": float((d ** 2).sum() / v.sum()), "blocks": int(d.size), "mean_a": float(ma.mean()),
+            "mean_b": float(mb.mean()), "mean_diff_rel": float((ma.mean() - mb.mean()) / mb.mean()),
+            "z": float((ma.mean() - mb.mean()) / sd) if sd > 0 else 0.0}
+
+
+def image_noise(imgs: list[np.ndarray]) -> float:
+    """Relative RMS noise of one image, from independent renders of it:
+    sqrt(mean over pixels of the sample variance) / mean pixel."""
+    st = np.stack(imgs).astype(np.float64)
+    return float(math.sqrt(float(st.var(axis=0, ddof=1).mean())) / float(st.mean()))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -317,8 +369,11 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     # kernel of every render.
     silk_res = {False: args.silk_bank_res}
     # (name, BSDF factory, description, integrator). TRANSLATOR: the integrator
-    # translators/scene.py picks for that BSDF (volpath when it has a pass-through component).
-    cases: list[tuple[str, Callable[[], Any], str, str]] = [
+    # translators/scene.py picks for that BSDF (usdfiber_path when it has a pass-through component).
+    from usdfiber.translators.integrator import register as register_integrator
+
+    register_integrator(mi)
+    cases: list[tuple[str, Callable[[], Any], str, str | dict]] = [
         ("ours_polyester", lambda: ours(poly[:1])[0],
          f"usdfiber_bcsdf, polyester (round) table, {bank_poly.families[True].resolution_deg:g} deg grid, "
          f"{bank_poly.nbytes() / 1e6:.2f} MB bank", TRANSLATOR),
@@ -327,6 +382,12 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
         ("ours_silk", lambda: ours([silk], res=silk_res)[0],
          f"usdfiber_bcsdf, silk (non-round) table on a {args.silk_bank_res:g} deg grid, "
          f"{out['silk_bank']['MB']:.1f} MB bank, pass-through on", TRANSLATOR),
+        ("ours_silk_volpath", lambda: ours([silk], res=silk_res)[0],
+         "usdfiber_bcsdf, silk, volpath (the previous choice for pass-through fibers; the reference of "
+         "silk's error check)", "volpath"),
+        ("ours_silk_generic", lambda: ours([silk], res=silk_res)[0],
+         "usdfiber_bcsdf, silk, usdfiber_path deciding pass-throughs in the BSDF's sample, with "
+         "next-event estimation at every hit, as volpath", {"type": "usdfiber_path", "fiber_pass": False}),
         ("ours_silk_path", lambda: ours([silk], res=silk_res)[0],
          "usdfiber_bcsdf, silk, path (profiling: shadow rays treat the tubes as opaque, wrong for "
          "non-round fibers)", "path"),
@@ -338,6 +399,12 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
         ("hair", lambda: matched_hair(mi, eta_p, beta_p),
          f"hair, no pigment, eta {eta_p}, roughness matched to beta {beta_p} deg", "path"),
         ("hair_volpath", lambda: matched_hair(mi, eta_p, beta_p), "hair, volpath (profiling)", "volpath"),
+        ("hair_usdfiber_path", lambda: matched_hair(mi, eta_p, beta_p),
+         "hair, usdfiber_path with null_shadows false (profiling: the Python integrator drawing path's "
+         "samples)", {"type": "usdfiber_path", "null_shadows": False}),
+        ("hair_usdfiber_path_walk", lambda: matched_hair(mi, eta_p, beta_p),
+         "hair, usdfiber_path (profiling: hair has a Null component too, so shadow rays walk through "
+         "the curves by closest hits instead of one occlusion test)", "usdfiber_path"),
         ("diffuse", lambda: mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}}),
          "diffuse, reflectance 0.8", "path"),
     ]
@@ -368,10 +435,10 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     # processes competing for the 2 cores.
     rec: dict[str, dict[str, Any]] = {name: {"desc": desc, "integrator": integ, "wall": {spp_lo: [], spp_hi: []},
                                             "cpu": {spp_lo: [], spp_hi: []}, "warm_1spp": [],
-                                            "eval_pdf": [], "sample": []} for name, _, desc, integ in cases}
+                                            "eval_pdf": [], "sample": [], "images": []} for name, _, desc, integ in cases}
     ctx_b = mi.BSDFContext()
     for rnd in range(args.repeats):
-        for name, make, desc, integ in cases:
+        for ci, (name, make, desc, integ) in enumerate(cases):
             r = rec[name]
             gc.collect()
             bsdf = make()
@@ -389,12 +456,15 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
             w1, _, _ = render_timed(mi, scene, 1, seed=1)    # trace + launch (kernel in memory)
             r["warm_1spp"].append(w1)
             for spp in (spp_lo, spp_hi):
+                # Seeds distinct per case and round: the high-spp images are independent
+                # renders, the error check's samples.
                 with Timer() as t:
-                    img = mi.render(scene, spp=spp, seed=10 + 2 * rnd + (spp == spp_hi))
+                    img = mi.render(scene, spp=spp, seed=10 + 2 * rnd + (spp == spp_hi) + 1000 * ci)
                     dr.eval(img)
                     dr.sync_thread()
                 r["wall"][spp].append(t.wall)
                 r["cpu"][spp].append(t.cpu)
+            r["images"].append(np.array(img, dtype=np.float32))
             # The BSDF calls alone, on the same random lanes for every case.
             si = dr.zeros(mi.SurfaceInteraction3f, n)
             si.wi = mi.Vector3f(*[mi.Float(x.astype(np.float32)) for x in wi_np])
@@ -422,6 +492,7 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
 
     res = {}
     for name, r in rec.items():
+        r["integrator"] = integrator_label(r["integrator"])
         per = {}
         for kind in ("wall", "cpu"):
             lo, hi = float(np.median(r[kind][spp_lo])), float(np.median(r[kind][spp_hi]))
@@ -432,8 +503,28 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
                      "wall_s": {str(k): v for k, v in r["wall"].items()}, "cpu_s": {str(k): v for k, v in r["cpu"].items()},
                      "time_per_spp_s": per["wall"][0], "per_call_overhead_s": per["wall"][1],
                      "cpu_per_spp_s": per["cpu"][0], "cpu_per_call_overhead_s": per["cpu"][1],
-                     "cores_median": float(np.median(cores)), "mean_pixel": r["mean_pixel"]}
+                     "cores_median": float(np.median(cores)), "mean_pixel": r["mean_pixel"],
+                     "mean_pixel_hi_spp": float(np.mean([x.mean() for x in r["images"]])),
+                     "noise_rel_rms_hi_spp": image_noise(r["images"]) if len(r["images"]) > 1 else None}
         calls[name] = {"eval_pdf": float(np.median(r["eval_pdf"])), "sample": float(np.median(r["sample"]))}
+    # Error check: the silk image under each integrator against volpath's, at the timed spp.
+    checks = {}
+    if args.repeats > 1 and "ours_silk_volpath" in rec:
+        # ours_silk_path (opaque shadow rays, pass-throughs counted as bounces) shows what a
+        # real difference looks like.
+        for name in ("ours_silk", "ours_silk_generic", "ours_silk_path"):
+            if name in rec:
+                checks[f"{name} vs ours_silk_volpath"] = compare_images(rec[name]["images"],
+                                                                        rec["ours_silk_volpath"]["images"])
+    for name in ("hair_usdfiber_path", "hair_usdfiber_path_walk"):
+        if args.repeats > 1 and name in rec:
+            checks[f"{name} vs hair"] = compare_images(rec[name]["images"], rec["hair"]["images"])
+    out["error_check"] = {"spp": spp_hi, "images_per_case": args.repeats, "block": 16, "comparisons": checks}
+    if checks:
+        print(_table(["comparison (images at %d spp, %d rounds)" % (spp_hi, args.repeats), "mean (a)", "mean (b)",
+                      "mean diff", "z", "R (blocks)"],
+                     [[k, f"{c['mean_a']:.4f}", f"{c['mean_b']:.4f}", f"{100 * c['mean_diff_rel']:+.2f} %", f"{c['z']:+.1f}",
+                       f"{c['R']:.2f} ({c['blocks']})"] for k, c in checks.items()]))
     rows = []
     for name, r in res.items():
         r["ratio_vs_hair"] = r["time_per_spp_s"] / res["hair"]["time_per_spp_s"]
@@ -443,9 +534,10 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
         rows.append([name, r["desc"], r["integrator"], f"{r['time_per_spp_s'] * 1e3:.0f} ms", f"{r['ratio_vs_hair']:.2f}",
                      f"{r['cpu_per_spp_s'] * 1e3:.0f} ms", f"{r['cpu_ratio_vs_hair']:.2f}",
                      _fmt_s(r["warm_render_1spp_s"]), f"{r['first_render_1spp_s']:.2f} s", comp,
-                     k["largest_kernel_gather_calls"], f"{r['cores_median']:.2f}"])
+                     k["largest_kernel_gather_calls"], f"{r['cores_median']:.2f}",
+                     "-" if r["noise_rel_rms_hi_spp"] is None else f"{100 * r['noise_rel_rms_hi_spp']:.1f} %"])
     print(_table(["case", "BSDF", "integrator", "wall / spp", "x hair", "CPU / spp", "x hair (CPU)", "1-spp render (warm)",
-                  "first 1-spp render", "kernel compile", "gathers (IR)", "cores"], rows))
+                  "first 1-spp render", "kernel compile", "gathers (IR)", "cores", f"noise at {spp_hi} spp"], rows))
     out["renders"] = res
     out["spp_pair"] = [spp_lo, spp_hi]
     out["bsdf_calls_cpu_ns_per_lane"] = calls

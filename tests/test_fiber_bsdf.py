@@ -14,6 +14,8 @@ from usdfiber.bake.baker import BakeSettings, bake_table
 from usdfiber.translators.curves import CurveGeometry, make_curve_shape
 from usdfiber.translators.fiber_bank import FiberBank, FiberSlot, bilinear_integral
 from usdfiber.translators.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.integrator import register as register_integrator
+from usdfiber.translators.scene import fiber_integrator
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the variant is set)
@@ -217,19 +219,26 @@ def _ortho(origin, target, up, half, res):
             "sampler": {"type": "independent", "sample_count": 64}}
 
 
-@pytest.mark.parametrize("integrator", ["path", "volpath"])
+@pytest.mark.parametrize("integrator", ["path", "volpath", "usdfiber_path", "usdfiber_path/generic"])
 def test_rendered_white_furnace(circle, silk, wool, integrator):
     """Non-absorbing fibers in a uniform white dome read 1 (all orders of scattering).
 
-    Both integrators the translator uses: volpath also passes shadow rays through the
-    non-round fibers (0/1 null transmission, see ``eval_null_transmission``).
+    Both integrators the translator uses (``path`` for round fibers, ``usdfiber_path`` when a
+    BSDF passes rays), the latter with the fiber BSDF deciding pass-throughs in ``sample``
+    (generic) or the integrator deciding with the fiber's q (the default), and volpath: the
+    last two also pass shadow rays through the non-round fibers (0/1 null transmission, see
+    ``eval_null_transmission``).
     """
+    register_integrator(mi)
+    spec = {"type": integrator.split("/")[0], "max_depth": 64}
+    if integrator.endswith("/generic"):
+        spec["fiber_pass"] = False
     geom = _straight_fibers((-1.0, 0.0, 1.0), 0.3)
     slots = [FiberSlot(circle, (0.0, 0.0, 0.0)), FiberSlot(silk, (0.0, 0.0, 0.0)), FiberSlot(wool, (0.0, 0.0, 0.0))]
     seg_slot = np.repeat([0, 1, 2], 3)
     b = fiber_bsdf(mi, FiberBank.build(slots), seg_slot, np.linspace(0, 5, 9), np.tile([0.0, 0.0, 1.0], (9, 1)))
     scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": 64},
+        "type": "scene", "integrator": spec,
         "sensor": _ortho([0.0, 3.0, 10.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 2.0, 48),
         "emitter": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "fibers": make_curve_shape(geom, b)})
@@ -238,6 +247,14 @@ def test_rendered_white_furnace(circle, silk, wool, integrator):
     # Every pixel (fiber or background) reads 1; the fiber rows are where it matters.
     assert abs(img.mean() - 1.0) < 0.01
     assert np.abs(img.mean(axis=(1, 2)) - 1.0).max() < 0.03
+    # The pixels whose centre sees a fiber tube (45 % of the image), together: 1 within 1 %.
+    depth = np.array(mi.render(mi.load_dict({
+        "type": "scene", "integrator": {"type": "depth"},
+        "sensor": _ortho([0.0, 3.0, 10.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 2.0, 48),
+        "fibers": make_curve_shape(geom, b)}), spp=1))[..., 0]
+    fiber = depth > 0
+    assert 0.2 < fiber.mean() < 0.6
+    assert abs(img[fiber].mean() - 1.0) < 0.01, img[fiber].mean()
 
 
 @pytest.mark.parametrize("name", ["circle", "silk"])
@@ -303,7 +320,8 @@ def test_registered_plugin_loads_a_table_file(tmp_path, silk):
         bare.eval(_ctx(True), si, wo)
 
 
-def test_shadow_of_non_round_fiber_is_as_wide_as_its_profile(silk):
+@pytest.mark.parametrize("integrator", ["translator", "volpath"])
+def test_shadow_of_non_round_fiber_is_as_wide_as_its_profile(silk, integrator):
     """A non-round fiber's shadow on a plane integrates to W(phi_l) / cos(incidence), not D / cos.
 
     A straight silk fiber (a tube of diameter D = 2 r whose profile covers W(phi) <= D of it)
@@ -313,14 +331,17 @@ def test_shadow_of_non_round_fiber_is_as_wide_as_its_profile(silk):
     no light the fiber scatters reaches the image. The shadow's missing fraction of the
     unshadowed radiance, integrated across the shadow, is the width it blocks: W / cos alpha
     when shadow rays pass the tube with probability 1 - W / D, D / cos alpha if the tube were
-    opaque. The integrator is the one ``translate_stage`` picks for such a BSDF.
+    opaque. The integrator is the one ``translate_stage`` picks for such a BSDF
+    (``usdfiber_path``), and ``volpath``, which also passes shadow rays through null surfaces.
     """
     r, h, alpha, psi = 0.5, 3.0, math.radians(40.0), math.radians(50.0)
     geom = _straight_fibers((0.0,), r, x_extent=30.0)              # along +x through the origin
     b = fiber_bsdf(mi, FiberBank.build([FiberSlot(silk, (0.0, 0.0, 0.0))]), [0, 0, 0], [psi] * 3,
                    np.tile([0.0, 0.0, 1.0], (3, 1)))
     assert mi.has_flag(b.flags(), mi.BSDFFlags.Null)              # pass-through is on: W < D
-    integrator = "volpath" if mi.has_flag(b.flags(), mi.BSDFFlags.Null) else "path"   # as scene.py
+    if integrator == "translator":
+        integrator = fiber_integrator(mi, b)                        # as translate_stage
+        assert integrator == "usdfiber_path"
     d = np.array([0.0, math.sin(alpha), -math.cos(alpha)])          # the light's direction of travel
     y_shadow, half, res = h * math.tan(alpha), 1.2, 64
     assert y_shadow - half > r and r / math.cos(alpha) < half - 0.3   # camera misses the fiber, sees all the shadow

@@ -29,12 +29,12 @@ for a profile that covers only ``W(phi_v)`` of it. A ray meeting the tube intera
 probability ``q = W(phi_v) / D`` and otherwise passes straight on (a ``Null`` component),
 so the pixel sees the fiber over ``W`` as it should; ``eval`` and ``pdf`` include the
 factor ``q``. Shadow rays pass too, through ``eval_null_transmission`` (0 or 1, 1 with
-probability ``1 - q``), but only integrators that call it honour it: ``volpath`` does,
-and does not count null events towards a path's depth. ``path`` tests shadow rays
-against the tube as if it were opaque (a shadow as wide as ``D``) and counts
-pass-throughs as bounces. So the translator (:mod:`usdfiber.translators.scene`) renders
-with ``volpath`` whenever a BSDF has the ``Null`` component, and with ``path`` otherwise
-(round fibers: ``W = D``, no pass-through).
+probability ``1 - q``), but only integrators that call it honour it: ``volpath`` and our
+``usdfiber_path`` (:mod:`usdfiber.translators.integrator`) do, and do not count null events
+towards a path's depth. ``path`` tests shadow rays against the tube as if it were opaque
+(a shadow as wide as ``D``) and counts pass-throughs as bounces. So the translator
+(:mod:`usdfiber.translators.scene`) renders with ``usdfiber_path`` whenever a BSDF has the
+``Null`` component, and with ``path`` otherwise (round fibers: ``W = D``, no pass-through).
 
 Yarn far fields (:mod:`usdfiber.translators.yarn_far_field`) are slots of the round family
 drawn on a curve of the yarn's bounding width: there ``q`` is the far field's coverage, the
@@ -480,8 +480,8 @@ def bsdf_class(mi: Any) -> type:
         def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
             """Transmission of a shadow ray through the tube: 0 or 1, 1 with probability 1 - q.
 
-            ``volpath`` multiplies a shadow ray's weight by this at every surface the ray meets
-            and traces on while the weight is non-zero. Returning the expectation 1 - q itself
+            ``usdfiber_path`` and ``volpath`` multiply a shadow ray's weight by this at every
+            surface the ray meets and trace on while the weight is non-zero. Returning the expectation 1 - q itself
             would make every shadow ray cross every fiber in its way ((1 - q)^n never reaches
             0): in a fiber mat that costs several times the whole render. A 0/1 value of the
             same expectation stops the ray at the first fiber that blocks it: the choice

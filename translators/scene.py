@@ -39,15 +39,33 @@ from usdfiber.translators.meshes import mesh_shapes
 from usdfiber.translators.render_settings import RenderSettingsInfo, TranslationError, read_render_settings, stage_bbox
 from usdfiber.translators.stage_walk import walk
 
-__all__ = ["RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "TranslateError", "translate_stage"]
+__all__ = ["RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "TranslateError", "fiber_integrator", "translate_stage"]
 
 #: Bake settings for tables baked on demand by a render: a 6 degree grid (the renderer
-#: interpolates between bins) and 100k photons per incoming direction (about 3 % relative
-#: error per direction for rough fibers). `usdfiber bake` makes the paper's 2 degree tables.
+#: interpolates between bins) and 100k photons per incoming direction (2.5-7 % relative L2
+#: error per direction, rms over the table, for the presets: bench/REPORT.md, "grouping").
+#: `usdfiber bake` makes the paper's 2 degree tables.
 RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
 
 DEFAULT_RESOLUTION = (960, 540)
 DEFAULT_SPP = 64
+
+
+def fiber_integrator(mi: Any, bsdf: Any) -> str:
+    """The integrator for a scene whose fibers use ``bsdf`` (None: no fibers).
+
+    Fibers that let rays pass (a ``Null`` component: non-round profiles, W < D, and yarn far
+    fields) render with ``usdfiber_path`` (:mod:`usdfiber.translators.integrator`, registered
+    here), a path tracer whose shadow rays pass them through ``eval_null_transmission`` and
+    whose pass-throughs are not bounces; Mitsuba's ``path`` treats the tubes as opaque to
+    shadow rays. Everything else renders with ``path``.
+    """
+    if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
+        from usdfiber.translators.integrator import PLUGIN_NAME, register
+
+        register(mi)
+        return PLUGIN_NAME
+    return "path"
 
 
 @dataclass
@@ -230,10 +248,8 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         entries["sensor"] = default_camera(lo, hi, w, h, spp=spp, seed=opt.seed, up_axis=up)
         cam_name = "default"
         warnings.append("the stage has no camera: using a default camera that frames the visible geometry")
-    # Fibers that let rays pass (a Null component, e.g. non-round profiles: W < D) need volpath,
-    # whose shadow rays are attenuated by eval_null_transmission; path's treat tubes as opaque.
-    pass_through = fibers is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
-    entries["integrator"] = {"type": "volpath" if pass_through else "path", "max_depth": int(opt.max_depth)}
+    entries["integrator"] = {"type": fiber_integrator(mi, bsdf if fibers is not None else None),
+                             "max_depth": int(opt.max_depth)}
     scene = mi.load_dict(entries)
     times["translate"] = _time.perf_counter() - t0 - times["tables"]
     return Translation(scene=scene, resolution=(w, h), spp=int(spp), camera=cam_name, fibers=fibers,
