@@ -1,6 +1,7 @@
 """Cloth benchmarks: yarn expansion at garment scale, and the image error of level of detail.
 
-    python bench/cloth_bench.py             # full run (17 min on 2 shared cores), writes bench/results/cloth.json
+    python bench/cloth_bench.py             # full run, writes bench/results/cloth.json (17 min on 2 shared
+                                            # cores with the former 3 LOD cameras; there are 4 now)
     python bench/cloth_bench.py --quick     # smoke test (1-2 min): small sizes, not a benchmark
     python bench/cloth_bench.py --parts lod --lod-res 200 --lod-spp 256 --out /tmp/lod.json
     python bench/cloth_bench.py report bench/results/cloth.json    # the markdown tables of a run
@@ -35,9 +36,11 @@ Parts:
   render time. For stages that cannot be translated, the segment counts are ESTIMATED by
   expanding one yarn of each distinct shape with the translator's own code (``expand_yarn`` at
   the LOD fraction that ``lod.fiber_fraction`` gives every yarn under the stage's camera).
-* ``lod``: a small plain weave seen from 2-3 camera distances at ``--lod-res``. Reference:
-  ``lod_scale`` 0 (every fiber), translated once with the widest camera (nothing culled) and
-  rendered from every camera. Then ``lod_scale`` 4, 2, 1, 0.5 with each camera (culling on).
+* ``lod``: a small plain weave seen from 2-4 camera distances at ``--lod-res`` (near: yarns of
+  8.4 px, mid: 4.7 px, whole: 2.8 px, far: 0.9 px at 160 px). Reference: ``lod_scale`` 0 (every
+  fiber), translated once with the widest camera (nothing culled) and rendered from every
+  camera. Then ``lod_scale`` 4, 2, 1, 0.5 with each camera (culling on), and the experiments
+  (``--variants``: other values of ``translators.lod``'s constants, set in the worker).
   Every image is two independent halves (different seeds); their difference estimates the
   image's own noise. Error: relative RMSE over the cloth's pixels (all channels)
   ``d = sqrt(mean((img - ref)^2) / mean(ref^2))``, and the part of it that is not noise,
@@ -261,36 +264,25 @@ def _render_halves(mi: Any, scene: Any, spp: int, seeds: tuple[int, ...], sensor
     return imgs, t.wall, t.cores
 
 
-def install_widen_variant(exponent: float) -> None:
-    """EXPERIMENT (not the shipped code): replace translators.fibers._expand_yarns by a copy that
-    widens the kept fibers by fraction ** -exponent instead of fraction ** -0.5. Exponent 1 keeps
-    the yarn's summed projected fiber width (its coverage when the fibers do not overlap); the
-    shipped 0.5 keeps the summed cross-section area. Everything else is the shipped function."""
-    from usdfiber.translators import fibers as F
+def install_lod_variant(overrides: dict[str, float]) -> None:
+    """EXPERIMENT (not the shipped values): set constants of ``translators.lod`` in this worker,
+    e.g. ``{"MIN_FIBER_FRACTION": 0.25, "WIDEN_EXPONENT": 1.0}`` (the translator reads them at
+    call time). WIDEN_EXPONENT 1 keeps the yarn's summed projected fiber width (its coverage when
+    the fibers do not overlap); 0.5 keeps the summed cross-section area."""
+    from usdfiber.translators import lod
 
-    def _expand_yarns(geom, yarn, fiber_diameter, view, lod_scale, instance_id):
-        parts = []
-        stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0, "far": 0}
-        for c, (pts, rad) in enumerate(F._yarn_polylines(geom)):
-            stats["yarns"] += 1
-            r = float(rad.max())
-            fraction = 1.0
-            if view is not None:
-                if not view.visible(pts.min(axis=0) - r, pts.max(axis=0) + r):
-                    stats["culled"] += 1
-                    continue
-                fraction = F.fiber_fraction(view.pixels(2 * r, pts), yarn.fiber_count, lod_scale=lod_scale)
-            ex = F.expand_yarn(pts, rad / yarn.yarn_radius, yarn, fiber_fraction=fraction,
-                               seed_offset=instance_id * 1_000_003 + c)
-            stats["fibers"] += ex.curve_count
-            stats["fibers_full"] += int(round(ex.curve_count / fraction))
-            parts.append(ex.to_curve_geometry(fiber_diameter / fraction ** exponent))
-        none = np.zeros(0, np.int64)
-        if not parts:
-            return F.CurveGeometry(np.zeros((0, 3)), np.zeros(0), none, none, 0), none, stats
-        return F.concatenate(parts), none, stats
+    for k, v in overrides.items():
+        if not hasattr(lod, k):
+            raise KeyError(f"translators.lod has no {k}")
+        setattr(lod, k, float(v))
 
-    F._expand_yarns = _expand_yarns
+
+def _variant_label(overrides: dict[str, float] | None) -> str:
+    if not overrides:
+        return ""
+    short = {"MIN_FIBER_FRACTION": "min", "WIDEN_EXPONENT": "widen exp", "FAR_YARN_PIXELS": "far px",
+             "FIBERS_PER_PIXEL": "fibers/px"}
+    return " [" + ", ".join(f"{short.get(k, k)} {v:g}" for k, v in overrides.items()) + "] (experiment)"
 
 
 def coverage(mi: Any, scene: Any, sensor: Any, mask: np.ndarray, z_min: float, sub: int = 4) -> float:
@@ -381,8 +373,12 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
         if yarn_progress["yarns"] % 250 == 0:
             prog("expanding", **yarn_progress)
 
-    if job.get("widen_exponent") is not None:
-        install_widen_variant(float(job["widen_exponent"]))
+    if job.get("lod_overrides"):
+        install_lod_variant(job["lod_overrides"])
+    from usdfiber.translators import lod as _lod
+
+    out["lod_constants"] = {k: getattr(_lod, k) for k in ("FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "MIN_FIBER_FRACTION",
+                                                          "WIDEN_EXPONENT") if hasattr(_lod, k)}
     wrap(F, "curves_from_prim", "usd_read")
     wrap(F, "_sample_curve", "centre_sampling")
     wrap(F, "expand_yarn", "expand_yarn", count_yarn)
@@ -715,7 +711,7 @@ def image_error(img: list[np.ndarray], ref: list[np.ndarray], mask: np.ndarray, 
 
 def part_lod(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
     n = args.lod_yarns
-    cams = ({"near": 1 / 3, "whole": 1.0} if args.quick else {"near": 1 / 3, "whole": 1.0, "far": 3.0})
+    cams = ({"near": 1 / 3, "whole": 1.0} if args.quick else {"near": 1 / 3, "mid": 0.6, "whole": 1.0, "far": 3.0})
     if args.cameras:
         cams = {k: v for k, v in cams.items() if k in args.cameras}
     spec = {"name": f"ORA 120 plain weave {n} x {n}", "kind": "weave", "yarn": "ORA 120", "warps": n, "wefts": n,
@@ -743,21 +739,22 @@ def part_lod(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
             refimgs, mask = [rz["arr_0"], rz["arr_1"]], rz["mask"]
             culled_full = None
             configs = ([(scale, None) for scale in args.lod_scales if scale > 0 or cam in args.full_cameras]
-                       + [(scale, 1.0) for scale in args.widen_experiment])
-            for k, (scale, widen) in enumerate(configs):
-                label = f"{scale:g}" + (" widen 1/f (experiment)" if widen is not None else "")
+                       + [(scale, {"WIDEN_EXPONENT": 1.0}) for scale in args.widen_experiment]
+                       + [(scale, v) for v in args.variants for scale in args.variant_scales])
+            for k, (scale, over) in enumerate(configs):
+                label = f"{scale:g}" + _variant_label(over)
                 job = {"spec": spec, "camera": cam, "lod_scale": scale, "cache": str(ctx["cache_dir"]),
                        "spp": args.lod_spp // 2, "seeds": [200 + 2 * k, 201 + 2 * k], "warmup": True,
                        "mem_limit_gib": args.mem_limit_gib, "tag": f"lod{k}", "image_dir": imgdir,
-                       "widen_exponent": widen}
+                       "lod_overrides": over}
                 r = run_worker(job)
-                r.update(lod_scale=scale, camera=cam, widen_exponent=widen, label=label)
+                r.update(lod_scale=scale, camera=cam, lod_overrides=over, label=label)
                 if "failed" not in r:
                     lz = np.load(os.path.join(imgdir, f"lod{k}_{cam}.npz"))
                     imgs = [lz["arr_0"], lz["arr_1"]]
                     r["error"] = image_error(imgs, refimgs, mask)
                     r["error_4x4"] = image_error(imgs, refimgs, mask, block=4)
-                    if scale == 0 and widen is None:
+                    if scale == 0 and over is None:
                         culled_full = imgs          # same camera, every fiber: culling alone
                     elif culled_full is not None:
                         # The fiber reduction alone: against the full expansion with the same culling.
@@ -810,7 +807,9 @@ def report(path: Path) -> str:
                     continue
                 c, pc = r["counts"], r["pieces"]
                 rows.append([sp["name"], lab, f"{c['yarn_yarns']:,}", str(c["yarn_culled"]),
-                             f"{c['yarn_fibers']:,} of {c['yarn_fibers_full']:,} ({c['yarn_fibers'] / c['yarn_fibers_full']:.1%})",
+                             (f"{c['yarn_fibers']:,} of {c['yarn_fibers_full']:,} "
+                              f"({c['yarn_fibers'] / c['yarn_fibers_full']:.1%})" if c["yarn_fibers_full"] else
+                              f"0 ({c.get('yarn_far', 0):,} yarns as far fields)"),
                              f"{c['fiber_segments']:,}", f"{_gib(r['hwm_mib'])} (stage {_gib(r['hwm_after_stage_mib'])}, "
                              f"translate {_gib(r['hwm_after_translate_mib'])})",
                              f"{r['load_before'][0]} -> {r['load_after'][0]}"])
@@ -917,13 +916,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lod-scales", type=floats, default=None,
                     help="lod_scale values against the reference (0: full expansion with the camera's own culling); "
                          "default 0,4,2,1,0.5; quick 0,1")
-    ap.add_argument("--full-cameras", type=lambda s: [x for x in s.split(",") if x], default=["near", "whole"],
+    ap.add_argument("--full-cameras", type=lambda s: [x for x in s.split(",") if x], default=["near", "mid", "whole"],
                     help="cameras that also render lod_scale 0 translated with their own camera (culling only; "
                          "without culling it is the reference again: a check of the error estimate)")
     ap.add_argument("--cameras", type=lambda s: [x for x in s.split(",") if x], default=None,
-                    help="LOD cameras to run (of near, whole, far; default all)")
+                    help="LOD cameras to run (of near, mid, whole, far; default all)")
     ap.add_argument("--widen-experiment", type=floats, default=None,
-                    help="lod_scale values also run with the experimental 1/fraction widening (default 1; '' for none)")
+                    help="lod_scale values also run with the experimental 1/fraction widening (default none)")
+
+    def variants(s: str) -> list[dict[str, float]]:
+        out = []
+        for v in s.split(";"):
+            if v.strip():
+                out.append({k.strip(): float(x) for k, x in (kv.split("=") for kv in v.split(","))})
+        return out
+
+    ap.add_argument("--variants", type=variants, default=[],
+                    help="EXPERIMENTS: translators.lod constants to override, e.g. "
+                         "'MIN_FIBER_FRACTION=0.25,WIDEN_EXPONENT=0.75;MIN_FIBER_FRACTION=0.5'; each is run at every "
+                         "--variant-scales value")
+    ap.add_argument("--variant-scales", type=floats, default=[1.0], help="lod_scale values of --variants (default 1)")
     args = ap.parse_args(argv)
     q = args.quick
     args.lod_yarns = args.lod_yarns or (8 if q else 20)
@@ -931,7 +943,7 @@ def main(argv: list[str] | None = None) -> int:
     args.lod_spp = args.lod_spp or (32 if q else 256)
     args.ref_spp = args.ref_spp or (64 if q else 512)
     args.lod_scales = args.lod_scales if args.lod_scales is not None else ([0.0, 1.0] if q else [0.0, 4.0, 2.0, 1.0, 0.5])
-    args.widen_experiment = args.widen_experiment if args.widen_experiment is not None else [1.0]
+    args.widen_experiment = args.widen_experiment if args.widen_experiment is not None else []
     out_path = args.out or RESULTS / ("cloth_quick.json" if q else "cloth.json")
     args.cache.mkdir(parents=True, exist_ok=True)
     os.environ["USDFIBER_CACHE_DIR"] = str(args.cache)

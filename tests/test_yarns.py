@@ -119,6 +119,31 @@ def test_fiber_fraction_is_nested_subset():
         expand_yarn(straight(), 1.0, p, fiber_fraction=0.0)
 
 
+def test_level_of_detail_rule():
+    """lod.py's three steps by yarn width in pixels: far field below FAR_YARN_PIXELS / lod_scale,
+    then 4 fibers per pixel but never fewer than half the fibers (the middle step's floor, which
+    tests/test_lod_bound.py bounds in the image), widened by 1 / fraction; lod_scale 0: all."""
+    from usdfiber.translators import lod
+
+    assert (lod.FAR_YARN_PIXELS, lod.FIBERS_PER_PIXEL, lod.MIN_FIBER_FRACTION, lod.WIDEN_EXPONENT) == (3.0, 4.0, 0.5, 1.0)
+    assert lod.far_yarn(2.9) and not lod.far_yarn(3.0) and not lod.far_yarn(8.0)
+    assert lod.far_yarn(5.9, lod_scale=0.5) and not lod.far_yarn(1.6, lod_scale=2.0)
+    assert not lod.far_yarn(0.01, lod_scale=0.0)
+    # ORA 120 (180 fibers): 4 fibers per pixel would keep 12 at 3 px; the floor keeps 90 up to
+    # 22.5 px, then the footprint rules, up to every fiber at 45 px.
+    assert lod.fiber_fraction(3.0, 180) == 0.5
+    assert lod.fiber_fraction(8.4, 180) == 0.5
+    assert lod.fiber_fraction(30.0, 180) == pytest.approx(120 / 180)
+    assert lod.fiber_fraction(45.0, 180) == lod.fiber_fraction(400.0, 180) == 1.0
+    assert lod.fiber_fraction(8.4, 180, lod_scale=4.0) == pytest.approx(4 * 4 * 8.4 / 180)
+    assert lod.fiber_fraction(8.4, 180, lod_scale=0.0) == 1.0
+    # Skala 360 (24 filaments): from 3 px on, the footprint keeps at least half.
+    assert lod.fiber_fraction(3.0, 24) == 0.5 and lod.fiber_fraction(4.5, 24) == 0.75
+    # Few fibers: at least min_fibers (8) of them.
+    assert lod.fiber_fraction(1.0, 12) == pytest.approx(8 / 12)
+    assert lod.fiber_widening(1.0) == 1.0 and lod.fiber_widening(0.5) == pytest.approx(2.0)
+
+
 # ---------------------------------------------------------------------------------------------
 # Twist measured from the geometry
 # ---------------------------------------------------------------------------------------------

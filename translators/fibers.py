@@ -35,7 +35,7 @@ from usdfiber.fiber_params import FiberParams, FiberParamsError
 from usdfiber.translators.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
                                          reference_normals)
 from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.lod import CameraView, far_yarn, fiber_fraction
+from usdfiber.translators.lod import CameraView, far_yarn, fiber_fraction, fiber_widening
 from usdfiber.translators.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
 from usdfiber.translators.yarns import ExpandedFibers, YarnError, YarnParams, expand_yarn
 
@@ -189,8 +189,8 @@ def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, 
                          seed_offset=instance_id * 1_000_003 + k)
         stats["fibers"] += ex.curve_count
         stats["fibers_full"] += int(round(ex.curve_count / fraction))
-        # Fewer fibers are widened to keep the yarn's total fiber cross-section (lod.py).
-        parts.append(ex.to_curve_geometry(fiber_diameter / math.sqrt(fraction)))
+        # Fewer fibers (never fewer than half) are widened to keep the yarn's coverage (lod.py).
+        parts.append(ex.to_curve_geometry(fiber_diameter * fiber_widening(fraction)))
     stats["far"] = len(far_curves) + len(far_lines) - stats["culled"]
     fibers = concatenate(parts) if parts else _no_curves()
     return _YarnLevels(fibers, np.asarray(far_curves, np.int64), far_lines, stats)
@@ -296,12 +296,6 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
             levels = _expand_yarns(yarn_geom, yarn, params.diameter * um, view, lod_scale, pl.instance_id)
             geom = levels.fibers
             yarn_stats.append(levels.stats)
-            st = levels.stats
-            if st["fibers"] < st["fibers_full"]:
-                warnings.append(
-                    f"{pl.path}: level of detail expanded {st['fibers']} of {st['fibers_full']} fibers of its "
-                    f"visible yarns; fewer, widened fibers make such yarns brighter than full expansion "
-                    f"(measured 9-54 %); --lod-scale 0 expands every fiber")
             if levels.far_count:
                 t0 = _time.perf_counter()
                 ff = _far_field(far_cache, pl.path, yarn, params.diameter * um,

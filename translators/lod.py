@@ -1,22 +1,27 @@
 """Level of detail for yarns: what the camera can see, at the detail it can resolve.
 
-"Model only what a scene needs":
+"Model only what a scene needs". Three steps, each measured against full expansion
+(``lod_scale`` 0) on a plain weave of ORA 120 (bench/REPORT.md, "Yarns, cloth and level of
+detail"):
 
 * **Culling**: a yarn curve whose bounding box (grown by its radius) misses the camera's
-  view frustum produces no fibers at all.
-* **Fiber count from the pixel footprint**: a yarn whose diameter covers ``n_px`` pixels
-  keeps the fraction ``min(1, lod_scale * fibers_per_pixel * n_px / fibers)`` of its
-  fibers (at least ``min_fibers``), a deterministic subset (:func:`expand_yarn`'s
-  ``fiber_fraction``). Kept fibers are widened by ``1 / sqrt(fraction)``, which keeps the
-  yarn's total fiber cross-section area but NOT its coverage or brightness: measured
-  against full expansion the image is 33-54 % too bright at ``lod_scale`` 1 (bench/REPORT.md,
-  "Yarns, cloth and level of detail"). Their optics (diameter, absorption, tables) are
-  unchanged. Flyaways follow the same fraction.
-
-* **Far yarns**: a yarn narrower than :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels is
-  not expanded at all: it is drawn as one curve with the yarn's far field, traced once
-  through its fibers (:mod:`.yarn_far_field`; measured against full expansion in
-  bench/REPORT.md, "Yarns, cloth and level of detail").
+  view frustum produces no fibers: it stays as a far-field proxy (below), so that it still
+  shadows and lights the view (+0.3 % in the image mean).
+* **Far yarns**: a yarn narrower than :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels is not
+  expanded at all: it is drawn as one curve with the yarn's far field, traced once through its
+  fibers (:mod:`.yarn_far_field`; +2.8 % in the mean at 0.9 px, -0.1 % at 2.8 px).
+* **Fewer fibers** (the middle step, yarns of :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels
+  and more): a yarn whose diameter covers ``n_px`` pixels keeps the fraction
+  ``min(1, max(MIN_FIBER_FRACTION, lod_scale * FIBERS_PER_PIXEL * n_px / fibers))`` of its
+  fibers (and at least ``min_fibers``), a deterministic subset (:func:`expand_yarn`'s
+  ``fiber_fraction``); flyaways follow the same fraction. Kept fibers are widened by
+  ``fraction ** -WIDEN_EXPONENT`` (:func:`fiber_widening`); their optics (diameter, absorption,
+  tables) are unchanged. With the floor of half the fibers and widening by ``1 / fraction``
+  the yarn keeps its coverage; what it loses is some of the light scattered between its
+  fibers, so the image is slightly too bright: +3.8 % in the mean at 6.3 px and +1.1 % at
+  3.5 px, where 4 fibers per pixel (8-21 % of them) widened by ``1 / sqrt(fraction)`` were +30 %
+  and +40 %. The bound is checked in every test run (tests/test_lod_bound.py: a patch of
+  5-pixel yarns within 5 % in the mean and 10 % on 4 x 4 pixel blocks).
 
 ``lod_scale = 0`` turns the reduction off (every fiber is expanded; culling stays).
 """
@@ -28,16 +33,30 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-__all__ = ["CameraView", "FAR_YARN_PIXELS", "camera_view", "far_yarn", "fiber_fraction"]
+__all__ = ["CameraView", "FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "MIN_FIBER_FRACTION", "WIDEN_EXPONENT", "camera_view",
+           "far_yarn", "fiber_fraction", "fiber_widening"]
 
 #: Fibers kept per pixel of yarn diameter at lod_scale 1 (a pixel resolves about this many
 #: fiber highlights across a yarn).
 FIBERS_PER_PIXEL = 4.0
 
 #: Yarns narrower than this many pixels (at lod_scale 1) are drawn with their far field. Measured
-#: on a plain weave at 2.8 px per yarn: the far field's image bias is 0.25 (mean -0.1 %), that of
-#: fewer, widened fibers 0.34 (+39 %) at lod_scale 1 (bench/REPORT.md).
+#: on a plain weave (bench/REPORT.md, section 4): at 2.1 px the far field is +0.2 % in the mean
+#: (pixel bias 0.20), half the fibers +0.8 % (0.04) for 460x the segments; at 3.5 px the far
+#: field is -1.3 % but 0.36 per pixel, half the fibers +2.4 % and 0.08.
 FAR_YARN_PIXELS = 3.0
+
+#: The middle step never keeps fewer than this fraction of a yarn's fibers. Measured on the
+#: plain weave at 6.3 px (image mean against full expansion with the same culling, fibers widened
+#: by 1 / fraction): 35 % kept: +5.3 %; 50 %: +3.6 %; 70 %: +2.5 %; 4 fibers per pixel (21 %)
+#: widened by 1 / sqrt(fraction): +30 % (bench/REPORT.md, section 4).
+MIN_FIBER_FRACTION = 0.5
+
+#: Kept fibers are widened by ``fraction ** -WIDEN_EXPONENT``: 1 keeps the yarn's summed projected
+#: fiber width, and with it the yarn's coverage at fractions of 0.5 and more (0.603 against 0.604
+#: at 6.3 px); 0.5, the summed cross-section, lost coverage (0.584) and was +11 % too bright at
+#: half the fibers.
+WIDEN_EXPONENT = 1.0
 
 
 @dataclass(frozen=True)
@@ -93,11 +112,19 @@ def camera_view(cam_prim: Usd.Prim, time: Usd.TimeCode, width: int, height: int)
 
 
 def fiber_fraction(yarn_pixels: float, fibers: int, *, lod_scale: float = 1.0, min_fibers: int = 8) -> float:
-    """Fraction of a yarn's fibers to expand when its diameter covers ``yarn_pixels`` pixels."""
+    """Fraction of a yarn's fibers to expand when its diameter covers ``yarn_pixels`` pixels:
+    ``FIBERS_PER_PIXEL * yarn_pixels * lod_scale`` fibers, never fewer than
+    :data:`MIN_FIBER_FRACTION` of them nor fewer than ``min_fibers``."""
     if lod_scale <= 0 or fibers <= 0:
         return 1.0
-    keep = max(float(min_fibers), lod_scale * FIBERS_PER_PIXEL * yarn_pixels)
+    keep = max(float(min_fibers), MIN_FIBER_FRACTION * fibers, lod_scale * FIBERS_PER_PIXEL * yarn_pixels)
     return float(min(1.0, keep / fibers))
+
+
+def fiber_widening(fraction: float) -> float:
+    """Factor by which the kept fibers of a yarn expanded at ``fraction`` are widened:
+    ``fraction ** -WIDEN_EXPONENT``."""
+    return float(fraction) ** -WIDEN_EXPONENT
 
 
 def far_yarn(yarn_pixels: float, *, lod_scale: float = 1.0) -> bool:
