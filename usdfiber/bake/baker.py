@@ -48,9 +48,10 @@ interpolation between nodes); ``BakeSettings(incoming="box")`` spreads each node
 its bin instead, which makes the discrete table reciprocal bin for bin.
 
 Resuming: with ``resume_dir``, every finished incoming direction is written there as an
-atomic chunk file (``d<theta>_<phi>.npz``) before the next starts; a rerun with the same
-directory (and the same inputs and settings, recorded in ``bake.json``) traces only the
-directions without a chunk.
+atomic chunk file (``d<theta>_<phi>.npz``) before the next group of directions starts (an
+interruption loses at most the group in flight: about ``GROUP_PHOTONS`` photons per batch); a
+rerun with the same directory (and the same inputs and settings, recorded in ``bake.json``)
+traces only the directions without a chunk.
 """
 from __future__ import annotations
 
