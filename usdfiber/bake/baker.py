@@ -64,6 +64,7 @@ import tempfile
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -281,13 +282,23 @@ class _Ctx:
     width_env: np.ndarray      # W_env at WIDTH_SAMPLES
     env_height: float
 
+    @cached_property
+    def _width_nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        n = len(self.width_env)
+        return 2 * math.pi * np.arange(n + 1) / n, np.append(self.width_env, self.width_env[0])
+
+    def env_width(self, phi: float) -> float:
+        """W_env at azimuth ``phi`` (radians): linear between the samples, periodic."""
+        wphi, wval = self._width_nodes
+        return float(np.interp(phi % (2 * math.pi), wphi, wval))
+
 
 class _Direction:
     """The histograms of one incoming direction, filled batch by batch."""
 
     def __init__(self, ctx: _Ctx, ti: int, pi: int) -> None:
         g, st = ctx.grid, ctx.settings
-        self.ctx, self.ti, self.pi = ctx, ti, pi
+        self.ctx = ctx
         self.theta = float(g.theta_i_nodes()[ti])
         self.phi = float(g.phi_i_nodes()[pi])
         self.nb = g.n_theta_o * g.n_phi_o
@@ -334,13 +345,11 @@ class _Direction:
             w = np.where(alive, w, 0.0)
             h[k] = np.bincount(idx, weights=w, minlength=nb)
             gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
-        wphi = 2 * math.pi * np.arange(len(ctx.width_env) + 1) / len(ctx.width_env)
-        wval = np.append(ctx.width_env, ctx.width_env[0])
         if ctx.cuticle is None:
             norm = float(r.n_hit)
         else:
             # Photons crossing the envelope's shadow without touching a scale go straight on.
-            w_env = float(np.interp(ph_b % (2 * math.pi), wphi, wval))
+            w_env = ctx.env_width(ph_b)
             norm = r.n_launched * w_env / float(r.launch_width)
             miss = max(0.0, norm - r.n_hit)
             fwd = int(g.bin_index(np.array([[-math.cos(th_b) * math.cos(ph_b), -math.cos(th_b) * math.sin(ph_b),
@@ -350,7 +359,7 @@ class _Direction:
         # Each batch weighs as the power its beam carries: photons that met the fiber for a
         # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin.
         box = ctx.settings.incoming == "box"
-        weight = norm if not box else float(np.interp(ph_b % (2 * math.pi), wphi, wval)) * math.cos(th_b)
+        weight = norm if not box else ctx.env_width(ph_b) * math.cos(th_b)
         scale = weight / norm if norm > 0 else 0.0
         self.H += scale * h
         self.G += scale * gl

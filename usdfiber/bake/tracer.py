@@ -526,7 +526,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     out_hit = dr.full(B, False, n)
     out_cut = dr.full(B, False, n)
     out_b = dr.zeros(U, n)
-    counters = {k: dr.zeros(U, n) for k in ("leaks", "forced") if k in st}
+    counters = {k: dr.zeros(U, n) for k in ("leaks", "forced")}   # "forced": rough walks only
     limit = 0
     while True:
         limit += int(phase_steps)
@@ -559,7 +559,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             dr.scatter(out_cut, st["cut"], st["idx"])
             dr.scatter(out_b, st["bounces"], st["idx"])
             for k, out in counters.items():
-                dr.scatter(out, st[k], st["idx"])
+                if k in st:
+                    dr.scatter(out, st[k], st["idx"])
             if n_act == 0:
                 break
             st = _gather_state(mi, dr, st, dr.compress(act))
@@ -572,8 +573,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         "hit_any": np.asarray(out_hit.numpy()).astype(bool),
         "cut": np.asarray(out_cut.numpy()).astype(bool),
         "bounces": np.asarray(out_b.numpy()),
-        **{k: (np.asarray(counters[k].numpy()) if k in counters else np.zeros(n, np.uint32))
-           for k in ("leaks", "forced")},
+        **{k: np.asarray(v.numpy()) for k, v in counters.items()},
     }
 
 
