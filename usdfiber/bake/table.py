@@ -112,6 +112,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from usdfiber import table_format
+from usdfiber.bake import recolour as _recolour
 
 __all__ = [
     "BcsdfTable",
@@ -632,38 +633,59 @@ class BcsdfTable:
         p = self.level_p(k).astype(np.float64)
         return p * self.domega_band()[..., None] * self.arrays["albedo"][:, :, k, None, None]
 
-    def _mass_at(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _mass_at(self, s: float) -> np.ndarray:
+        """F at absorption ``s``: float64 numpy, the reference for :mod:`~usdfiber.bake.recolour`."""
         lv = self.levels
         k = _level_bracket(lv, s)
         lb = self.arrays["lbar"]
-        last = k == len(lv) - 1
         f0 = self._level_mass(k)
-        l0 = lb[:, :, k].astype(np.float64)
         if s == lv[k]:
-            F = f0
-        elif last:
-            F = hermite_log_interp(lv, s, f0, l0, None, None, k)
-        else:
-            F = hermite_log_interp(lv, s, f0, l0, self._level_mass(k + 1),
-                                   lb[:, :, k + 1].astype(np.float64), k)
+            return f0
+        l0 = lb[:, :, k].astype(np.float64)
+        if k == len(lv) - 1:
+            return hermite_log_interp(lv, s, f0, l0, None, None, k)
+        return hermite_log_interp(lv, s, f0, l0, self._level_mass(k + 1), lb[:, :, k + 1].astype(np.float64), k)
+
+    def _albedo_at(self, s: float) -> np.ndarray:
+        lv = self.levels
+        k = _level_bracket(lv, s)
         a = self.arrays["albedo"].astype(np.float64)
         al = self.arrays["albedo_lbar"].astype(np.float64)
         if s == lv[k]:
-            A = a[:, :, k]
-        elif last:
-            A = hermite_log_interp(lv, s, a[:, :, k], al[:, :, k], None, None, k)
-        else:
-            A = hermite_log_interp(lv, s, a[:, :, k], al[:, :, k], a[:, :, k + 1], al[:, :, k + 1], k)
-        return F, A
+            return a[:, :, k]
+        if k == len(lv) - 1:
+            return hermite_log_interp(lv, s, a[:, :, k], al[:, :, k], None, None, k)
+        return hermite_log_interp(lv, s, a[:, :, k], al[:, :, k], a[:, :, k + 1], al[:, :, k + 1], k)
+
+    def _p_reference(self, s: float) -> np.ndarray:
+        """Recoloured p for one absorption, float64 numpy (one core; slow on large tables)."""
+        F = self._mass_at(s)
+        tot = F.sum(axis=(-2, -1), keepdims=True)
+        return np.where(tot > 0, F / np.where(tot > 0, tot, 1.0), 0.0) / self.domega_band()[..., None]
+
+    def _p_channels(self, sigmas: Sequence[float], kernel: bool) -> np.ndarray:
+        """Recoloured p for distinct absorptions, (n_ti, n_pi, B, n_po, C) float32."""
+        if kernel:
+            p, lb = self.arrays["p"], self.arrays["lbar"]
+            n_ti, n_pi, K, B, n_po = p.shape
+            n = n_ti * n_pi
+            out = _recolour.recolour_p(p.reshape(n, K, B, n_po), lb.reshape(n, K, B, n_po),
+                                       (self.arrays["p_scale"] * self.arrays["albedo"]).reshape(n, K),
+                                       self.domega_band().reshape(n, B), self.levels, sigmas)
+            return out.reshape(n_ti, n_pi, B, n_po, len(sigmas))
+        return np.stack([self._p_reference(s).astype(np.float32) for s in sigmas], axis=-1)
 
     # ---- recolouring -----------------------------------------------------------------------
     def recolour(self, sigma_a_rgb_per_um: float | Sequence[float] = 0.0,
-                 diameter_scale: float = 1.0) -> Recoloured:
+                 diameter_scale: float = 1.0, *, kernel: bool | None = None) -> Recoloured:
         """p and Lambda for an absorption per channel (1/um), without re-tracing.
 
         ``sigma_a_rgb_per_um``: a scalar or one value per channel (e.g. linear Rec.709 RGB)
         in 1/um; ``diameter_scale``: the fiber's diameter over ``baked_diameter_um``. The
         effective absorption of the baked profile is their product. Results are cached.
+        p is computed by the Dr.Jit kernel of :mod:`usdfiber.bake.recolour` (float32, all
+        cores) where Dr.Jit has an LLVM backend, else in float64 numpy; ``kernel`` forces
+        one (True / False). A grey absorption is computed once (a read-only view per channel).
         """
         sig = np.atleast_1d(np.asarray(sigma_a_rgb_per_um, dtype=np.float64)).reshape(-1)
         ds = float(diameter_scale)
@@ -671,24 +693,22 @@ class BcsdfTable:
             raise ValueError(f"diameter_scale must be > 0, got {diameter_scale}")
         eff = sig * ds
         key = tuple(float(x) for x in eff)
-        hit = self._recoloured.get(key)
+        for s in key:
+            _level_bracket(self.levels, s)               # validates s
+        use_kernel = _recolour.available() if kernel is None else bool(kernel)
+        hit = self._recoloured.get((key, use_kernel))
         if hit is not None:
             return hit
-        ps, albs = [], []
-        cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-        dom = self.domega_band()[..., None]
-        for s in key:
-            if s not in cache:
-                F, A = self._mass_at(s)
-                tot = F.sum(axis=(-2, -1), keepdims=True)
-                p = np.where(tot > 0, F / np.where(tot > 0, tot, 1.0), 0.0) / dom
-                cache[s] = (p.astype(np.float32), A.astype(np.float32))
-            ps.append(cache[s][0])
-            albs.append(cache[s][1])
-        rec = Recoloured(self, eff, np.stack(ps, axis=-1), np.stack(albs, axis=-1))
+        if len(set(key)) == 1:
+            p = self._p_channels(key[:1], use_kernel)
+            p = np.broadcast_to(p, p.shape[:-1] + (len(key),)) if len(key) > 1 else p
+        else:
+            p = self._p_channels(key, use_kernel)
+        alb = np.stack([self._albedo_at(s).astype(np.float32) for s in key], axis=-1)
+        rec = Recoloured(self, eff, p, alb)
         if len(self._recoloured) >= 8:
             self._recoloured.clear()
-        self._recoloured[key] = rec
+        self._recoloured[(key, use_kernel)] = rec
         return rec
 
     # ---- evaluation --------------------------------------------------------------------------

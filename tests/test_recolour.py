@@ -1,0 +1,135 @@
+"""Recolouring in the Dr.Jit kernel (usdfiber.bake.recolour) against the float64 numpy reference.
+
+The kernel must give the reference's p (float32 rounding apart) for every way an absorption
+can sit among the levels (at a level, between two, beyond the last), for RGB and grey, for
+bins that are empty at one level, for directions without light, and where Lambda is tiny.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdfiber.bake import profiles
+from usdfiber.bake import recolour as kernel_mod
+from usdfiber.bake.baker import BakeSettings, bake_table
+from usdfiber.bake.table import DEFAULT_LEVELS, LAYOUT, LAYOUT_VERSION, BcsdfTable, Grid
+
+pytestmark = pytest.mark.skipif(not kernel_mod.available(), reason="Dr.Jit has no LLVM backend here")
+
+# At a level, between levels (low, middle, high), beyond the last level (64), far beyond.
+SIGMAS = [0.0, 0.125, 0.3, 1.0, 2.7, 5.0, 20.0, 64.0, 100.0, 400.0]
+
+
+@pytest.fixture(scope="module")
+def silk_table():
+    silk = profiles.builtin_profiles("silk", 1)[0].centered().scaled_to_diameter(1.0)
+    return bake_table(silk, 1.55, 6.5, None, BakeSettings(resolution_deg=30, photons=8000, batches=2))
+
+
+def synthetic(seed: int = 0, res: float = 30.0) -> BcsdfTable:
+    """Random contents with the real layout, plus the awkward cases: bins empty at one level
+    and not the next, a direction without light at some levels, Lambda down to 1e-30."""
+    g = Grid(res, True, False)
+    K = len(DEFAULT_LEVELS)
+    rng = np.random.default_rng(seed)
+    B = g.n_theta_o - 2
+    shape = (g.n_theta_i, g.n_phi_i, K, B, g.n_phi_o)
+    p = rng.random(shape).astype(np.float16)
+    p[rng.random(shape) < 0.1] = 0
+    lb = (rng.random(shape) * 4.0).astype(np.float16)
+    lv = np.asarray(DEFAULT_LEVELS)
+    alb = np.exp(-lv[None, None] * rng.uniform(0.2, 1.2, (g.n_theta_i, g.n_phi_i, 1)))
+    alb[0, 1, 3:5] = 0.0                 # no light at levels 3 and 4
+    alb[1, 2, :] = 0.0                   # no light at all
+    p[1, 3, 6] = 0.0                     # a whole level empty in one direction
+    arrays = {
+        "p": p, "p_scale": rng.uniform(0.5, 2.0, (g.n_theta_i, g.n_phi_i, K)).astype(np.float32), "lbar": lb,
+        "band_start": np.ones((g.n_theta_i, g.n_phi_i), np.int16),
+        "albedo": alb.astype(np.float32), "albedo_lbar": np.full((g.n_theta_i, g.n_phi_i, K), 0.8, np.float32),
+        "levels": lv, "width": np.ones(720, np.float32),
+        "rel_error": np.zeros((g.n_theta_i, g.n_phi_i), np.float32),
+        "photons": np.zeros((g.n_theta_i, g.n_phi_i), np.int64),
+    }
+    header = {"layout": {"name": LAYOUT, "version": LAYOUT_VERSION}, "resolution": g.to_header(),
+              "baked_diameter_um": 1.0}
+    return BcsdfTable(header=header, arrays=arrays)
+
+
+def assert_same(kern: np.ndarray, ref: np.ndarray, what: str) -> None:
+    """Equal up to float32 rounding; values below 1e-30 of a slice's largest may flush to 0."""
+    assert kern.shape == ref.shape, what
+    assert np.all(np.isfinite(kern)), what
+    big = np.max(np.abs(ref), axis=(-3, -2), keepdims=True)
+    sig = np.abs(ref) > 1e-30 * big
+    rel = np.abs(kern - ref) / np.where(sig, np.abs(ref), 1.0)
+    assert rel[sig].max() < 2e-4, f"{what}: max relative difference {rel[sig].max():.3g}"
+    assert np.all(np.abs(kern[~sig]) <= 1e-29 * np.broadcast_to(big, ref.shape)[~sig]), what
+
+
+@pytest.mark.parametrize("sig", SIGMAS)
+def test_kernel_equals_reference_on_a_baked_table(silk_table, sig):
+    t = silk_table
+    rgb = (sig, 0.5 * sig + 0.2, 3.0 * sig + 1.0)
+    kern = t.recolour(rgb, kernel=True)
+    ref = t.recolour(rgb, kernel=False)
+    assert_same(kern.p, ref.p, f"sigma {rgb}")
+    np.testing.assert_array_equal(kern.albedo, ref.albedo)
+    # Normalized: each slice integrates to 1 over the band.
+    tot = np.einsum("abrpc,abr->abc", kern.p.astype(np.float64), t.domega_band())
+    np.testing.assert_allclose(tot, 1.0, atol=2e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_kernel_equals_reference_on_awkward_tables(seed):
+    t = synthetic(seed)
+    for sig in SIGMAS:
+        kern = t.recolour(sig, kernel=True).p
+        ref = t.recolour(sig, kernel=False).p
+        assert_same(kern, ref, f"seed {seed}, sigma {sig}")
+    # The direction without light gives 0, never NaN.
+    assert not np.any(t.recolour(2.7, kernel=True).p[1, 2])
+
+
+def test_kernel_keeps_tiny_lambda_normalized():
+    """Where Lambda is tiny, float32 bin masses would underflow; the kernel works relative to
+    the direction's level and stays normalized."""
+    t = synthetic(3)
+    # Lambda ~1e-35 at every level (float32 normals): the bin masses p * Lambda are below
+    # float32's normal range.
+    t.arrays["albedo"][:] = (1e-35 * np.exp(-0.01 * np.asarray(DEFAULT_LEVELS))).astype(np.float32)
+    for sig in (3.0, 50.0, 200.0):
+        kern = t.recolour(sig, kernel=True)
+        ref = t.recolour(sig, kernel=False)
+        assert_same(kern.p, ref.p, f"sigma {sig}")
+        tot = np.einsum("abrpc,abr->abc", kern.p.astype(np.float64), t.domega_band())
+        lit = np.einsum("abrpc,abr->abc", ref.p, t.domega_band()) > 0
+        np.testing.assert_allclose(tot[lit], 1.0, atol=2e-6)
+
+
+def test_grey_and_channel_order():
+    t = synthetic(4)
+    grey = t.recolour((2.7, 2.7, 2.7), kernel=True)
+    one = t.recolour(2.7, kernel=True)
+    assert grey.p.shape[-1] == 3
+    for c in range(3):
+        np.testing.assert_array_equal(grey.p[..., c], one.p[..., 0])
+    a = t.recolour((0.3, 9.0, 1.5), kernel=True).p
+    b = t.recolour((9.0, 1.5, 0.3), kernel=True).p
+    np.testing.assert_array_equal(a[..., 1], b[..., 0])
+    np.testing.assert_array_equal(a[..., 0], b[..., 2])
+
+
+def test_launches_split_by_direction_give_the_same_table(monkeypatch):
+    t = synthetic(5)
+    whole = t.recolour((0.3, 5.0, 90.0), kernel=True).p.copy()
+    monkeypatch.setattr(kernel_mod, "_MAX_ELEMENTS", 3 * len(DEFAULT_LEVELS) * t.n_band * t.grid.n_phi_o)
+    t2 = BcsdfTable(header=t.header, arrays=t.arrays)
+    split = t2.recolour((0.3, 5.0, 90.0), kernel=True).p
+    np.testing.assert_array_equal(split, whole)
+
+
+def test_bad_absorption_is_refused():
+    t = synthetic(6)
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="absorption"):
+            t.recolour(bad, kernel=True)

@@ -1,0 +1,187 @@
+"""Recolouring a table's p in fused, multi-threaded Dr.Jit (LLVM) kernels.
+
+:meth:`BcsdfTable.recolour` needs, for every bin of every incoming direction, the bin mass
+``F(s)`` interpolated between the two absorption levels around ``s`` (cubic Hermite in
+``log F``, :func:`usdfiber.bake.table.hermite_log_interp`), then ``p = F / sum(F) / domega``.
+On a 2 degree table that is 10^8 bins per channel. In numpy (float64, one core, a temporary
+array per operation) it takes about 18 s per channel; here the interpolation of every channel
+is one kernel over the bins, on all cores, in float32, reading the float16 levels straight
+from the table's own arrays (Dr.Jit maps them without a copy), with one ``log`` and one
+``exp`` per bin and channel. A second kernel normalizes each (channel, direction) and writes
+the channels one after the other; :class:`Recoloured` views that memory as ``(..., B, n_po,
+C)`` without a copy.
+
+The arithmetic is that of :func:`~usdfiber.bake.table.hermite_log_interp` in float32 (checked
+against it in ``tests/test_recolour.py``); the float64 numpy path stays as the reference and
+the fallback where Dr.Jit has no LLVM backend.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["available", "recolour_p"]
+
+#: Elements of the level arrays (or of the output) per launch: indices stay 32-bit.
+_MAX_ELEMENTS = 1 << 31
+
+
+@functools.cache
+def available() -> bool:
+    """Whether Dr.Jit's LLVM backend can run the kernel here (an LLVM >= 16 was found: older
+    ones abort inside the JIT, see :mod:`usdfiber.backend`)."""
+    try:
+        from usdfiber.backend import configure_llvm, find_llvm
+
+        if find_llvm() is None:
+            return False
+        configure_llvm()
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.LLVM))
+    except Exception:   # no drjit, or no usable LLVM: the numpy path is used
+        return False
+
+
+def _bracket(levels: np.ndarray, s: float) -> int:
+    return int(np.clip(np.searchsorted(levels, s, side="right") - 1, 0, len(levels) - 1))
+
+
+class _Channel:
+    """How one channel's absorption ``s`` sits among the levels (plain Python numbers)."""
+
+    def __init__(self, levels: np.ndarray, s: float) -> None:
+        s = float(s)
+        if not (math.isfinite(s) and s >= 0.0):
+            raise ValueError(f"absorption must be finite and >= 0, got {s}")
+        K = len(levels)
+        self.k = _bracket(levels, s)
+        s0 = float(levels[self.k])
+        self.ds = s - s0
+        if s == s0:
+            self.mode = "level"           # exactly at level k: its values
+            self.h = (1.0, 0.0, 0.0, 0.0)
+        elif self.k == K - 1:
+            self.mode = "tangent"         # beyond the last level: the tangent at it
+            self.h = (1.0, 0.0, 0.0, 0.0)
+        else:
+            self.mode = "hermite"         # between levels k and k + 1
+            h = float(levels[self.k + 1]) - s0
+            t = self.ds / h
+            # Cubic Hermite basis, the tangent ones times the interval (slopes are -Lbar).
+            self.h = (2 * t ** 3 - 3 * t ** 2 + 1, (t ** 3 - 2 * t ** 2 + t) * h,
+                      -2 * t ** 3 + 3 * t ** 2, (t ** 3 - t ** 2) * h)
+
+
+def recolour_p(p: np.ndarray, lbar: np.ndarray, level_scale: np.ndarray, domega: np.ndarray,
+               levels: np.ndarray, sigmas: Sequence[float]) -> np.ndarray:
+    """Normalized p per steradian for each effective absorption in ``sigmas``.
+
+    ``p``, ``lbar``: the table's (n_dir, K, B, n_po) arrays (float16 or float32, C-contiguous);
+    ``level_scale``: (n_dir, K), ``p_scale * albedo`` per level (so that ``p * level_scale``
+    is the bin mass per steradian; only ratios within a direction matter); ``domega``:
+    (n_dir, B) solid angle of each band row; ``levels``: the K absorption levels; ``sigmas``:
+    C absorptions in the levels' unit. Returns a (n_dir, B, n_po, C) float32 view of
+    channel-major memory; each (direction, channel) integrates to 1 over the band (0 where
+    the direction has no light).
+    """
+    import drjit as dr
+    from drjit.llvm import Float, Float16, UInt32
+
+    n_dir, K, B, n_po = p.shape
+    lv = np.asarray(levels, dtype=np.float64)
+    chans = [_Channel(lv, s) for s in sigmas]
+    ftype = Float16 if p.dtype == np.float16 else Float
+    scale = np.asarray(level_scale, dtype=np.float64)
+    domega = np.asarray(domega, dtype=np.float64)
+    per = max(1, _MAX_ELEMENTS // (max(K, len(chans)) * B * n_po))
+    out = np.empty((len(chans), n_dir, B, n_po), dtype=np.float32) if per < n_dir else None
+    for d0 in range(0, n_dir, per):
+        d1 = min(n_dir, d0 + per)
+        # (The arrays Dr.Jit maps stay referenced here until the results are read back.)
+        p_c, l_c = np.ascontiguousarray(p[d0:d1]), np.ascontiguousarray(lbar[d0:d1])
+        gs = _masses(dr, Float, ftype, UInt32, chans, p_c, l_c, scale[d0:d1], K, B, n_po)
+        # Normalize each (channel, direction): row sums on all cores, totals in numpy (small),
+        # then one kernel that scales and writes the channels one after the other.
+        n = d1 - d0
+        invs = []
+        for g in gs:
+            tot = np.einsum("db,db->d", dr.block_sum(g, n_po).numpy().reshape(n, B), domega[d0:d1])
+            invs.append(np.where(tot > 0.0, 1.0 / np.where(tot > 0.0, tot, 1.0), 0.0))
+        N = n * B * n_po
+        lane = dr.arange(UInt32, len(gs) * N)
+        c = lane // N
+        i = lane - c * N
+        res = Float(0.0)
+        for ci, g in enumerate(gs):
+            res = dr.select(c == ci, dr.gather(Float, g, i, c == ci), res)
+        inv = Float(np.concatenate(invs).astype(np.float32))
+        res = res * dr.gather(Float, inv, c * n + i // (B * n_po))
+        block = res.numpy().reshape(len(gs), n, B, n_po)
+        if per >= n_dir:
+            return np.moveaxis(block, 0, -1)     # one launch: the kernel's memory is the result
+        out[:, d0:d1] = block
+    return np.moveaxis(out, 0, -1)
+
+
+def _masses(dr, Float, ftype, UInt32, chans: list[_Channel], p: np.ndarray, lbar: np.ndarray,
+            scale: np.ndarray, K: int, B: int, n_po: int) -> list:
+    """Per channel, each bin's mass per steradian up to a factor per direction (Dr.Jit arrays
+    of n_dir x B x n_po, evaluated in one kernel)."""
+    n_dir = p.shape[0]
+    BP = B * n_po
+    p_d = ftype(p.reshape(-1))            # mapped, not copied
+    l_d = ftype(lbar.reshape(-1))
+    lane = dr.arange(UInt32, n_dir * BP)  # lanes (d, j): direction d, bin j of its band
+    d = lane // BP                        # a literal divisor compiles to a multiplication
+    base = lane + d * ((K - 1) * BP)      # level 0 of bin j of direction d
+
+    def load(k: int) -> tuple:
+        # The level's offset is a kernel parameter (opaque): a new colour reuses the kernel.
+        i = base + dr.opaque(UInt32, k * BP)
+        return Float(dr.gather(ftype, p_d, i)), Float(dr.gather(ftype, l_d, i))
+
+    def per_direction(x: np.ndarray) -> object:
+        return dr.gather(Float, Float(np.ascontiguousarray(x, dtype=np.float32)), d)
+
+    gs = []
+    for ch in chans:
+        s0 = scale[:, ch.k]
+        # A factor common to a direction cancels in the normalization, so masses are taken
+        # relative to level k's (p itself at level k): they stay near the stored values, also
+        # where Lambda is tiny. A direction without light at level k takes level k + 1's.
+        p0, l0 = load(ch.k)
+        if not np.all(s0 > 0.0):
+            p0 = p0 * per_direction(s0 > 0.0)
+        if ch.mode == "level":
+            g = dr.select(p0 > 0.0, p0, 0.0)
+        elif ch.mode == "tangent":
+            # The tangent falls as exp(-Lbar ds) without bound: measured from the direction's
+            # smallest Lbar (among bins with light), float32 underflows only where a value is
+            # negligible next to the direction's largest.
+            pn = p[:, ch.k].reshape(n_dir, BP)
+            ln = np.where(pn > 0, lbar[:, ch.k].reshape(n_dir, BP), np.inf).min(axis=1)
+            ln = np.where(np.isfinite(ln), ln, 0.0)
+            ds = dr.opaque(Float, ch.ds)
+            g = dr.select(p0 > 0.0, p0 * dr.exp(-(l0 - per_direction(ln)) * ds), 0.0)
+        else:
+            s1 = scale[:, ch.k + 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(s0 > 0.0, s1 / np.where(s0 > 0.0, s0, 1.0), (s1 > 0.0) * 1.0)
+            p1, l1 = load(ch.k + 1)
+            p1 = p1 * per_direction(ratio)
+            pos0, pos1 = p0 > 0.0, p1 > 0.0
+            h00, h10, h01, h11 = (dr.opaque(Float, x) for x in ch.h)
+            # Cubic Hermite in log F, written relative to level k: y - y0 = h01 (y1 - y0)
+            # - h10 Lbar0 - h11 Lbar1 (h00 + h01 = 1), clipped to [y1 - y0, 0] as
+            # hermite_log_interp clips y to [y1, y0]; one log and one exp per bin.
+            r = dr.log(dr.select(pos0 & pos1, p1 / p0, 1.0))
+            e = dr.minimum(dr.maximum(h01 * r - h10 * l0 - h11 * l1, r), 0.0)
+            e = dr.select(pos1, e, -l0 * dr.opaque(Float, ch.ds))      # empty at k + 1: tangent
+            g = dr.select(pos0, p0 * dr.exp(e), dr.select(pos1, p1, 0.0))
+        gs.append(g)
+    dr.eval(*gs)
+    return gs
