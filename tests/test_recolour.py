@@ -26,22 +26,22 @@ def silk_table():
     return bake_table(silk, 1.55, 6.5, None, BakeSettings(resolution_deg=30, photons=8000, batches=2))
 
 
-def synthetic(seed: int = 0, res: float = 30.0) -> BcsdfTable:
+def synthetic(seed: int = 0, res: float = 30.0, levels=DEFAULT_LEVELS, dtype=np.float16) -> BcsdfTable:
     """Random contents with the real layout, plus the awkward cases: bins empty at one level
-    and not the next, a direction without light at some levels, Lambda down to 1e-30."""
+    and not the next, a direction without light at some levels and one without light at all."""
     g = Grid(res, True, False)
-    K = len(DEFAULT_LEVELS)
+    K = len(levels)
     rng = np.random.default_rng(seed)
     B = g.n_theta_o - 2
     shape = (g.n_theta_i, g.n_phi_i, K, B, g.n_phi_o)
-    p = rng.random(shape).astype(np.float16)
+    p = rng.random(shape).astype(dtype)
     p[rng.random(shape) < 0.1] = 0
-    lb = (rng.random(shape) * 4.0).astype(np.float16)
-    lv = np.asarray(DEFAULT_LEVELS)
+    lb = (rng.random(shape) * 4.0).astype(dtype)
+    lv = np.asarray(levels, dtype=np.float64)
     alb = np.exp(-lv[None, None] * rng.uniform(0.2, 1.2, (g.n_theta_i, g.n_phi_i, 1)))
-    alb[0, 1, 3:5] = 0.0                 # no light at levels 3 and 4
+    alb[0, 1, 1:3] = 0.0                 # no light at levels 1 and 2
     alb[1, 2, :] = 0.0                   # no light at all
-    p[1, 3, 6] = 0.0                     # a whole level empty in one direction
+    p[1, 3, K - 1] = 0.0                 # a whole level empty in one direction
     arrays = {
         "p": p, "p_scale": rng.uniform(0.5, 2.0, (g.n_theta_i, g.n_phi_i, K)).astype(np.float32), "lbar": lb,
         "band_start": np.ones((g.n_theta_i, g.n_phi_i), np.int16),
@@ -88,6 +88,16 @@ def test_kernel_equals_reference_on_awkward_tables(seed):
         assert_same(kern, ref, f"seed {seed}, sigma {sig}")
     # The direction without light gives 0, never NaN.
     assert not np.any(t.recolour(2.7, kernel=True).p[1, 2])
+
+
+@pytest.mark.parametrize("levels", [(0.0,), (0.0, 0.5, 3.0), (0.0, 0.1, 0.3, 0.9, 2.7, 8.1)])
+def test_kernel_equals_reference_with_other_levels(levels):
+    """Levels other than the default (one level only, uneven spacing), p stored as float32."""
+    t = synthetic(7, levels=levels, dtype=np.float32)
+    for sig in (0.0, 0.05, 0.5, 1.7, 3.0, 9.0, 40.0):
+        kern = t.recolour((sig, 0.3 * sig, 2.0 * sig + 0.1), kernel=True).p
+        ref = t.recolour((sig, 0.3 * sig, 2.0 * sig + 0.1), kernel=False).p
+        assert_same(kern, ref, f"levels {levels}, sigma {sig}")
 
 
 def test_kernel_keeps_tiny_lambda_normalized():
