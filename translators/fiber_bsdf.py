@@ -481,9 +481,10 @@ def bsdf_class(mi: Any) -> type:
             """Transmission of a shadow ray through the tube: 0 or 1, 1 with probability 1 - q.
 
             ``usdfiber_path`` and ``volpath`` multiply a shadow ray's weight by this at every
-            surface the ray meets and trace on while the weight is non-zero. Returning the expectation 1 - q itself
-            would make every shadow ray cross every fiber in its way ((1 - q)^n never reaches
-            0): in a fiber mat that costs several times the whole render. A 0/1 value of the
+            surface the ray meets and trace on while the weight is non-zero. Returning the
+            expectation 1 - q itself would make every shadow ray cross every fiber in its way
+            ((1 - q)^n never reaches 0): in a fiber mat that costs several times the whole
+            render. A 0/1 value of the
             same expectation stops the ray at the first fiber that blocks it: the choice
             ``sample`` makes for camera and scattered rays (null or scatter). This interface
             has no sampler: the uniform number is a hash of the hit point, a continuous random

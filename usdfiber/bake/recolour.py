@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["available", "recolour_p"]
+__all__ = ["available", "level_bracket", "recolour_p"]
 
 #: Elements of the level arrays (or of the output) per launch: indices stay 32-bit.
 _MAX_ELEMENTS = 1 << 31
@@ -46,7 +46,11 @@ def available() -> bool:
         return False
 
 
-def _bracket(levels: np.ndarray, s: float) -> int:
+def level_bracket(levels: np.ndarray, s: float) -> int:
+    """Index k with levels[k] <= s < levels[k+1] (the last level for s beyond it); ValueError
+    for an absorption that is not finite and >= 0."""
+    if not (math.isfinite(s) and s >= 0.0):
+        raise ValueError(f"absorption must be finite and >= 0, got {s}")
     return int(np.clip(np.searchsorted(levels, s, side="right") - 1, 0, len(levels) - 1))
 
 
@@ -55,10 +59,8 @@ class _Channel:
 
     def __init__(self, levels: np.ndarray, s: float) -> None:
         s = float(s)
-        if not (math.isfinite(s) and s >= 0.0):
-            raise ValueError(f"absorption must be finite and >= 0, got {s}")
         K = len(levels)
-        self.k = _bracket(levels, s)
+        self.k = level_bracket(levels, s)
         s0 = float(levels[self.k])
         self.ds = s - s0
         if s == s0:
@@ -139,15 +141,21 @@ def _masses(dr, Float, ftype, UInt32, chans: list[_Channel], p: np.ndarray, lbar
     d = lane // BP                        # a literal divisor compiles to a multiplication
     base = lane + d * ((K - 1) * BP)      # level 0 of bin j of direction d
 
+    loaded: dict[int, tuple] = {}
+
     def load(k: int) -> tuple:
-        # The level's offset is a kernel parameter (opaque): a new colour reuses the kernel.
-        i = base + dr.opaque(UInt32, k * BP)
-        return Float(dr.gather(ftype, p_d, i)), Float(dr.gather(ftype, l_d, i))
+        # Read once per level, whichever channels need it. The level's offset is a kernel
+        # parameter (opaque): a new colour reuses the kernel.
+        if k not in loaded:
+            i = base + dr.opaque(UInt32, k * BP)
+            loaded[k] = Float(dr.gather(ftype, p_d, i)), Float(dr.gather(ftype, l_d, i))
+        return loaded[k]
 
     def per_direction(x: np.ndarray) -> object:
         return dr.gather(Float, Float(np.ascontiguousarray(x, dtype=np.float32)), d)
 
     gs = []
+    l_min = None
     for ch in chans:
         s0 = scale[:, ch.k]
         # A factor common to a direction cancels in the normalization, so masses are taken
@@ -162,11 +170,12 @@ def _masses(dr, Float, ftype, UInt32, chans: list[_Channel], p: np.ndarray, lbar
             # The tangent falls as exp(-Lbar ds) without bound: measured from the direction's
             # smallest Lbar (among bins with light), float32 underflows only where a value is
             # negligible next to the direction's largest.
-            pn = p[:, ch.k].reshape(n_dir, BP)
-            ln = np.where(pn > 0, lbar[:, ch.k].reshape(n_dir, BP), np.inf).min(axis=1)
-            ln = np.where(np.isfinite(ln), ln, 0.0)
+            if l_min is None:            # the same last level for every such channel
+                pn = p[:, ch.k].reshape(n_dir, BP)
+                ln = np.where(pn > 0, lbar[:, ch.k].reshape(n_dir, BP), np.inf).min(axis=1)
+                l_min = per_direction(np.where(np.isfinite(ln), ln, 0.0))
             ds = dr.opaque(Float, ch.ds)
-            g = dr.select(p0 > 0.0, p0 * dr.exp(-(l0 - per_direction(ln)) * ds), 0.0)
+            g = dr.select(p0 > 0.0, p0 * dr.exp(-(l0 - l_min) * ds), 0.0)
         else:
             s1 = scale[:, ch.k + 1]
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -115,6 +115,7 @@ import numpy as np
 
 from usdfiber import table_format
 from usdfiber.bake import recolour as _recolour
+from usdfiber.bake.recolour import level_bracket as _level_bracket
 
 __all__ = [
     "BcsdfTable",
@@ -280,13 +281,6 @@ def hermite_log_interp(levels: np.ndarray, s: float, f0: np.ndarray, l0: np.ndar
     out = np.where(pos0, np.exp(np.where(pos0, y, 0.0)), 0.0)
     # A bin empty at level k but not at k+1 (rounding of tiny values): keep the k+1 value.
     return np.where(~pos0 & pos1, f1, out)
-
-
-def _level_bracket(levels: np.ndarray, s: float) -> int:
-    """Index k with levels[k] <= s < levels[k+1] (the last level for s beyond it)."""
-    if not (math.isfinite(s) and s >= 0.0):
-        raise ValueError(f"absorption must be finite and >= 0, got {s}")
-    return int(np.clip(np.searchsorted(levels, s, side="right") - 1, 0, len(levels) - 1))
 
 
 # ---------------------------------------------------------------------------------------------
