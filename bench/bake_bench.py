@@ -1105,7 +1105,7 @@ def cmd_grouping(args: argparse.Namespace) -> int:
     default grouping. The table's own error estimate is the error the time was reached at.
     """
     from usdfiber.bake import baker
-    from usdfiber.translators.scene import RENDER_BAKE_SETTINGS
+    from usdfiber.translators.mitsuba.scene import RENDER_BAKE_SETTINGS
 
     rec = Record("grouping", args)
     st = RENDER_BAKE_SETTINGS if not args.quick else baker.BakeSettings(resolution_deg=30, photons=4000, batches=4)

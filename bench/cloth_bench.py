@@ -73,8 +73,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 RESULTS = ROOT / "bench" / "results"
-SOURCES = ("translators/lod.py", "translators/yarns.py", "translators/fibers.py", "translators/curves.py",
-           "translators/scene.py", "translators/fiber_bsdf.py", "translators/fiber_bank.py", "usdfiber/cloth.py")
+SOURCES = ("translators/mitsuba/lod.py", "translators/mitsuba/yarns.py", "translators/mitsuba/fibers.py", "translators/mitsuba/curves.py",
+           "translators/mitsuba/scene.py", "translators/mitsuba/fiber_bsdf.py", "translators/mitsuba/fiber_bank.py", "usdfiber/cloth.py")
 BAKE = {"resolution_deg": 10.0, "photons": 20_000, "batches": 4}
 DEFAULT_CACHE = "/tmp/usdfiber-cache-clothbench"
 DYE, DEPTH_OF_SHADE = "disperseBlue", 1.0
@@ -269,7 +269,7 @@ def install_lod_variant(overrides: dict[str, float]) -> None:
     e.g. ``{"MIN_FIBER_FRACTION": 0.25, "WIDEN_EXPONENT": 1.0}`` (the translator reads them at
     call time). WIDEN_EXPONENT 1 keeps the yarn's summed projected fiber width (its coverage when
     the fibers do not overlap); 0.5 keeps the summed cross-section area."""
-    from usdfiber.translators import lod
+    from usdfiber.translators.mitsuba import lod
 
     for k, v in overrides.items():
         if not hasattr(lod, k):
@@ -331,9 +331,9 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
 
         from usdfiber.bake.baker import BakeSettings
         from usdfiber.bake.cache import TableCache
-        from usdfiber.translators import fibers as F
-        from usdfiber.translators import scene as S
-        from usdfiber.translators.scene import SceneOptions, translate_stage
+        from usdfiber.translators.mitsuba import fibers as F
+        from usdfiber.translators.mitsuba import scene as S
+        from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
     out["import_seconds"] = t.wall
     prog("imported")
     with Timer() as t:
@@ -375,7 +375,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
 
     if job.get("lod_overrides"):
         install_lod_variant(job["lod_overrides"])
-    from usdfiber.translators import lod as _lod
+    from usdfiber.translators.mitsuba import lod as _lod
 
     out["lod_constants"] = {k: getattr(_lod, k) for k in ("FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "MIN_FIBER_FRACTION",
                                                           "WIDEN_EXPONENT") if hasattr(_lod, k)}
@@ -427,7 +427,7 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
     imgdir = job.get("image_dir")
     z_card = info["cloth_lo"][2] - info["yarn_diameter_mm"]       # between the cloth and the card
     if job.get("sensors"):          # reference: render this translation from several cameras
-        from usdfiber.translators.camera import camera_sensor
+        from usdfiber.translators.mitsuba.camera import camera_sensor
         from pxr import Usd, UsdGeom
 
         for name in job["sensors"]:
@@ -537,10 +537,10 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     from pxr import Usd
 
     from usdfiber import cloth
-    from usdfiber.translators import lod
-    from usdfiber.translators.curves import curves_from_prim
-    from usdfiber.translators.fibers import _pixel_polyline, _yarn_polylines
-    from usdfiber.translators.yarns import YarnParams, expand_yarn
+    from usdfiber.translators.mitsuba import lod
+    from usdfiber.translators.mitsuba.curves import curves_from_prim
+    from usdfiber.translators.mitsuba.fibers import _pixel_polyline, _yarn_polylines
+    from usdfiber.translators.mitsuba.yarns import YarnParams, expand_yarn
 
     n = spec["warps"]
     assert spec["kind"] == "weave" and spec["wefts"] == n

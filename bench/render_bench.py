@@ -12,7 +12,7 @@ average before and after, the git HEAD and the SHA-256 of the renderer's sources
   straight-ish fibers (B-splines, 5 segments each) in one ``bsplinecurve`` shape, a perspective
   camera, a constant dome plus a directional light, max_depth 8, 256 x 256. The integrator is
   the one ``translate_stage`` picks for the BSDF (``scene.fiber_integrator``): ``usdfiber_path``
-  (``translators/integrator.py``) when it lets rays pass (a ``Null`` component: non-round
+  (``translators/mitsuba/integrator.py``) when it lets rays pass (a ``Null`` component: non-round
   fibers), else ``path``.
   BSDFs: ``usdfiber_bcsdf`` with a round polyester table and with a non-round silk table,
   ``hair``, and ``diffuse`` as a floor. Silk also with ``volpath`` (the previous choice, the
@@ -77,8 +77,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))           # run from a checkout without installing
 
 RESULTS = ROOT / "bench" / "results"
-SOURCES = ("translators/fiber_bsdf.py", "translators/fiber_bank.py", "translators/curves.py",
-           "translators/fibers.py", "translators/scene.py", "translators/integrator.py", "usdfiber/render.py")
+SOURCES = ("translators/mitsuba/fiber_bsdf.py", "translators/mitsuba/fiber_bank.py", "translators/mitsuba/curves.py",
+           "translators/mitsuba/fibers.py", "translators/mitsuba/scene.py", "translators/mitsuba/integrator.py", "usdfiber/render.py")
 TARGETS = {"time_per_spp_ratio_vs_hair": 1.3, "translate_seconds_1M_segments": 10.0}
 
 # Tables: polyester as `usdfiber render` bakes it on demand (RENDER_BAKE_SETTINGS: 6 deg,
@@ -112,7 +112,7 @@ def _fmt_s(x: float) -> str:
 
 def fiber_mat(n_fibers: int, n_cp: int = 8, radius: float = 0.01, seed: int = 1):
     """``n_fibers`` wavy fibers along x in a rectangular (y, z) lattice, B-spline controls."""
-    from usdfiber.translators.curves import CurveGeometry
+    from usdfiber.translators.mitsuba.curves import CurveGeometry
 
     rng = np.random.default_rng(seed)
     ny = max(1, int(round(math.sqrt(4.0 * n_fibers))))
@@ -152,7 +152,7 @@ def matched_hair(mi: Any, eta: float, beta_deg: float) -> Any:
 
 def mat_scene(mi: Any, geom: Any, length: float, bsdf: Any, res: int, max_depth: int = 8,
               integrator: str | dict = "path") -> Any:
-    from usdfiber.translators.curves import make_curve_shape
+    from usdfiber.translators.mitsuba.curves import make_curve_shape
 
     d = mat_scene_dict(mi, length, res, max_depth, integrator)
     d["fibers"] = make_curve_shape(geom, bsdf, "fibers")
@@ -212,7 +212,7 @@ TRANSLATOR = "translator"
 def translator_integrator(mi: Any, bsdf: Any) -> str:
     """The integrator ``translate_stage`` uses for fibers with ``bsdf``: ``usdfiber_path`` when
     the BSDF has a null (pass-through) component, whose shadow rays it passes; else ``path``."""
-    from usdfiber.translators.scene import fiber_integrator
+    from usdfiber.translators.mitsuba.scene import fiber_integrator
 
     return fiber_integrator(mi, bsdf)
 
@@ -294,7 +294,7 @@ def _fiber_stage(n_segments: int, preset: str = "polyester", seed: int = 3):
 def prebake(cache_dir: Path, settings: Any) -> dict[str, Any]:
     """Bake polyester's table(s) into ``cache_dir`` through the translator (as a render would)."""
     from usdfiber.bake.cache import TableCache
-    from usdfiber.translators.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 
     stage, _ = _fiber_stage(100)
     with Timer() as t:
@@ -323,9 +323,9 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     import drjit as dr
 
     from usdfiber.bake.baker import BakeSettings, bake_request, requests_from_preset
-    from usdfiber.translators.curves import make_curve_shape, reference_normals
-    from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-    from usdfiber.translators.fiber_bsdf import fiber_bsdf
+    from usdfiber.translators.mitsuba.curves import make_curve_shape, reference_normals
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+    from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
     out: dict[str, Any] = {}
     geom, length = fiber_mat(args.fibers)
@@ -369,8 +369,8 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     # kernel of every render.
     silk_res = {False: args.silk_bank_res}
     # (name, BSDF factory, description, integrator). TRANSLATOR: the integrator
-    # translators/scene.py picks for that BSDF (usdfiber_path when it has a pass-through component).
-    from usdfiber.translators.integrator import register as register_integrator
+    # translators/mitsuba/scene.py picks for that BSDF (usdfiber_path when it has a pass-through component).
+    from usdfiber.translators.mitsuba.integrator import register as register_integrator
 
     register_integrator(mi)
     cases: list[tuple[str, Callable[[], Any], str, str | dict]] = [
@@ -558,9 +558,9 @@ def part_convergence(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str,
     import drjit as dr
 
     from usdfiber.bake.baker import requests_from_preset
-    from usdfiber.translators.curves import reference_normals
-    from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-    from usdfiber.translators.fiber_bsdf import fiber_bsdf
+    from usdfiber.translators.mitsuba.curves import reference_normals
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+    from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
     geom, length = fiber_mat(args.fibers)
     seg_ref = reference_normals(geom)
@@ -649,10 +649,10 @@ def scale_worker(args: argparse.Namespace) -> None:
 
     from usdfiber.bake.baker import BakeSettings
     from usdfiber.bake.cache import TableCache
-    from usdfiber.translators import fibers as F
-    from usdfiber.translators import scene as S
-    from usdfiber.translators.fiber_bank import FiberBank
-    from usdfiber.translators.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba import fibers as F
+    from usdfiber.translators.mitsuba import scene as S
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 
     out: dict[str, Any] = {"import_seconds": time.perf_counter() - t_import, "rss_after_import_mib": proc_status_mib("VmRSS")}
     with Timer() as t:
@@ -827,7 +827,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import usdfiber  # noqa: F401
     from usdfiber.bake.baker import BakeSettings
-    from usdfiber.translators.scene import RENDER_BAKE_SETTINGS
+    from usdfiber.translators.mitsuba.scene import RENDER_BAKE_SETTINGS
 
     t_start = time.perf_counter()
     doc: dict[str, Any] = {

@@ -11,11 +11,11 @@ from usdfiber.backend import mitsuba
 from usdfiber.bake import profiles
 from usdfiber.bake.baker import BakeSettings, bake_table
 
-from usdfiber.translators.curves import CurveGeometry, make_curve_shape
-from usdfiber.translators.fiber_bank import FiberBank, FiberSlot, bilinear_integral
-from usdfiber.translators.fiber_bsdf import fiber_bsdf
-from usdfiber.translators.integrator import register as register_integrator
-from usdfiber.translators.scene import fiber_integrator
+from usdfiber.translators.mitsuba.curves import CurveGeometry, make_curve_shape
+from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot, bilinear_integral
+from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.mitsuba.integrator import register as register_integrator
+from usdfiber.translators.mitsuba.scene import fiber_integrator
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the variant is set)
@@ -295,7 +295,7 @@ def test_one_fiber_radiance_matches_table(request, name):
 
 def test_registered_plugin_loads_a_table_file(tmp_path, silk):
     """`usdfiber_bcsdf` by name (any Mitsuba scene): one table, sampling matches evaluation."""
-    from usdfiber.translators.fiber_bsdf import register
+    from usdfiber.translators.mitsuba.fiber_bsdf import register
 
     register(mi)
     path = tmp_path / "silk.npz"

@@ -89,9 +89,9 @@ from usdfiber.backend import mitsuba
 from usdfiber.bake import exact, profiles
 from usdfiber.bake.baker import BakeSettings, bake_table
 
-from usdfiber.translators.curves import CurveGeometry, make_curve_shape
-from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.mitsuba.curves import CurveGeometry, make_curve_shape
+from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the variant is set)

@@ -1,4 +1,4 @@
-"""The ``usdfiber_path`` integrator (usdfiber.translators.integrator) against volpath and path.
+"""The ``usdfiber_path`` integrator (usdfiber.translators.mitsuba.integrator) against volpath and path.
 
 Agreement tests compare images block by block against the noise estimated from two
 independent seeds per integrator; each also checks that it would catch a wrong integrator
@@ -19,11 +19,11 @@ from usdfiber.backend import mitsuba
 from usdfiber.bake import profiles
 from usdfiber.bake.baker import BakeSettings, bake_table
 from usdfiber.bake.cache import TableCache
-from usdfiber.translators.curves import CurveGeometry, make_curve_shape
-from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.fiber_bsdf import fiber_bsdf
-from usdfiber.translators.integrator import PLUGIN_NAME, integrator_class, register, scene_has_null_bsdf
-from usdfiber.translators.scene import SceneOptions, fiber_integrator, translate_stage
+from usdfiber.translators.mitsuba.curves import CurveGeometry, make_curve_shape
+from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.mitsuba.integrator import PLUGIN_NAME, integrator_class, register, scene_has_null_bsdf
+from usdfiber.translators.mitsuba.scene import SceneOptions, fiber_integrator, translate_stage
 
 mi = mitsuba()
 register(mi)

@@ -7,8 +7,8 @@ import usdfiber  # noqa: F401  (registers schemas first)
 from usdfiber.backend import mitsuba
 from usdfiber.bake.baker import BakeSettings
 from usdfiber.bake.cache import TableCache
-from usdfiber.translators import lod
-from usdfiber.translators.yarns import YarnParams
+from usdfiber.translators.mitsuba import lod
+from usdfiber.translators.mitsuba.yarns import YarnParams
 
 mi = mitsuba()
 
@@ -65,7 +65,7 @@ def _yarn_patch():
 
 def render_patch(cache_dir, lod_scale: float, spp: int = 48, seed: int = 5):
     """(image (RES, RES, 3), translation counts) of the patch at ``lod_scale``."""
-    from usdfiber.translators.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 
     bake = BakeSettings(resolution_deg=30, photons=2000, batches=2)     # coarse: the same table for both
     tr = translate_stage(_yarn_patch(), SceneOptions(resolution=(RES, RES), spp=1, bake=bake,

@@ -17,8 +17,8 @@ from pxr import Usd, UsdGeom, UsdLux, UsdShade
 
 from usdfiber.bake.baker import BakeSettings
 from usdfiber.bake.cache import TableCache
-from usdfiber.translators.scene import SceneOptions, translate_stage
-from usdfiber.translators.yarn_far_field import YarnBakeSettings
+from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
 from usdfiber.validation.runner import check_stage
 
 SCRIPT = Path(__file__).resolve().parent.parent / "examples" / "make_paper_scenes.py"

@@ -14,10 +14,10 @@ from usdfiber.bake.baker import BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.cli import main
 from usdfiber.image_output import read_exr
-from usdfiber.translators import lod
-from usdfiber.translators.scene import SceneOptions, translate_stage
-from usdfiber.translators.yarn_far_field import YarnBakeSettings
-from usdfiber.translators.yarns import YarnParams
+from usdfiber.translators.mitsuba import lod
+from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
+from usdfiber.translators.mitsuba.yarns import YarnParams
 
 FAST = ["--bake-resolution", "15", "--bake-photons", "4000"]
 FAST_SETTINGS = BakeSettings(resolution_deg=15, photons=4000, batches=4)

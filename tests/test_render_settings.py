@@ -1,4 +1,4 @@
-"""UsdRender.Settings reading and stage bounds (usdfiber.translators.render_settings)."""
+"""UsdRender.Settings reading and stage bounds (usdfiber.translators.mitsuba.render_settings)."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender
 
-from usdfiber.translators.render_settings import (
+from usdfiber.translators.mitsuba.render_settings import (
     SPP_ATTR,
     TranslationError,
     read_render_settings,

@@ -7,7 +7,7 @@ import pytest
 import usdfiber  # noqa: F401  (registers schemas before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom
 
-from usdfiber.translators.stage_walk import Placement, walk
+from usdfiber.translators.mitsuba.stage_walk import Placement, walk
 
 
 def mesh(stage, path, translate=None):

@@ -1,4 +1,4 @@
-"""UsdGeom.Camera -> Mitsuba sensors (usdfiber.translators.camera), checked against USD's own
+"""UsdGeom.Camera -> Mitsuba sensors (usdfiber.translators.mitsuba.camera), checked against USD's own
 projection (GfFrustum view and projection matrices)."""
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Usd, UsdGeom
 
 from usdfiber.backend import mitsuba
-from usdfiber.translators.camera import CameraWarning, camera_sensor, conform_aperture, default_camera
-from usdfiber.translators.render_settings import TranslationError
+from usdfiber.translators.mitsuba.camera import CameraWarning, camera_sensor, conform_aperture, default_camera
+from usdfiber.translators.mitsuba.render_settings import TranslationError
 
 mi = mitsuba()
 _STAGES: list[Usd.Stage] = []   # prims do not keep their stage alive

@@ -10,7 +10,7 @@ import usdfiber  # noqa: F401  (registers schemas before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from usdfiber.backend import mitsuba
-from usdfiber.translators import curves as C
+from usdfiber.translators.mitsuba import curves as C
 
 # ---------------------------------------------------------------------------------------------
 # Independent evaluation of the USD definition (UsdGeomBasisCurves docs), one curve at a time.
@@ -395,8 +395,8 @@ def test_hits_at_the_end_of_a_long_shape_get_no_nan_from_the_fiber_bsdf(mi):
 
     from usdfiber.bake import profiles
     from usdfiber.bake.baker import BakeSettings, bake_table
-    from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-    from usdfiber.translators.fiber_bsdf import fiber_bsdf
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+    from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
     n = 200_000
     x = np.arange(n + 3, dtype=float)              # unit segments: rays meet few of them

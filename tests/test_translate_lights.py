@@ -1,4 +1,4 @@
-"""UsdLux lights -> Mitsuba emitters (usdfiber.translators.lights): radiance, orientation, dome."""
+"""UsdLux lights -> Mitsuba emitters (usdfiber.translators.mitsuba.lights): radiance, orientation, dome."""
 from __future__ import annotations
 
 import math
@@ -11,8 +11,8 @@ import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from usdfiber.backend import mitsuba
-from usdfiber.translators.lights import blackbody_rgb, default_light, light_emitter
-from usdfiber.translators.render_settings import TranslationError
+from usdfiber.translators.mitsuba.lights import blackbody_rgb, default_light, light_emitter
+from usdfiber.translators.mitsuba.render_settings import TranslationError
 
 mi = mitsuba()
 I4 = np.eye(4)

@@ -1,4 +1,4 @@
-"""UsdGeom.Mesh + UsdPreviewSurface -> Mitsuba meshes (usdfiber.translators.meshes)."""
+"""UsdGeom.Mesh + UsdPreviewSurface -> Mitsuba meshes (usdfiber.translators.mitsuba.meshes)."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +8,8 @@ import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
 
 from usdfiber.backend import mitsuba
-from usdfiber.translators.meshes import material_bsdf, mesh_shape, mesh_shapes
-from usdfiber.translators.render_settings import TranslationError
+from usdfiber.translators.mitsuba.meshes import material_bsdf, mesh_shape, mesh_shapes
+from usdfiber.translators.mitsuba.render_settings import TranslationError
 
 mi = mitsuba()
 I4 = np.eye(4)

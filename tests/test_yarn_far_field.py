@@ -14,12 +14,12 @@ from usdfiber.bake import profiles
 from usdfiber.bake.baker import BakeSettings, bake_table
 from usdfiber.bake.cache import TableCache, TableCacheWarning
 
-from usdfiber.translators.curves import CurveGeometry
-from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.fiber_bsdf import fiber_bsdf
-from usdfiber.translators.yarn_far_field import (YarnBakeSettings, YarnFarField, YarnFarFieldCache, YarnPiece,
+from usdfiber.translators.mitsuba.curves import CurveGeometry
+from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.mitsuba.yarn_far_field import (YarnBakeSettings, YarnFarField, YarnFarFieldCache, YarnPiece,
                                                  bake_yarn_far_field, trace_far_field)
-from usdfiber.translators.yarns import YarnParams
+from usdfiber.translators.mitsuba.yarns import YarnParams
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the variant is set)
@@ -217,7 +217,7 @@ def test_far_field_image_matches_full_expansion(tmp_path):
     """The stated bound of the far-yarn level of detail: a patch of one-pixel yarns drawn with
     their far field against every fiber expanded, 32 x 32 px: the mean within 8 % and 4 x 4
     pixel blocks within 15 % relative RMSE (bench/REPORT.md measures 2.8 % and 4 %)."""
-    from usdfiber.translators.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 
     bake = BakeSettings(resolution_deg=15, photons=4000, batches=4)
     yb = YarnBakeSettings(resolution_deg=15, photons=6000, batches=4)

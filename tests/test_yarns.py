@@ -12,8 +12,8 @@ import usdfiber  # noqa: F401  (registers schemas before any stage is opened)
 from pxr import Gf, Usd, UsdGeom
 
 from usdfiber import authoring, presets
-from usdfiber.translators import curves as C
-from usdfiber.translators.yarns import (
+from usdfiber.translators.mitsuba import curves as C
+from usdfiber.translators.mitsuba.yarns import (
     ExpandedFibers,
     YarnError,
     YarnParams,
@@ -123,7 +123,7 @@ def test_level_of_detail_rule():
     """lod.py's three steps by yarn width in pixels: far field below FAR_YARN_PIXELS / lod_scale,
     then 4 fibers per pixel but never fewer than half the fibers (the middle step's floor, which
     tests/test_lod_bound.py bounds in the image), widened by 1 / fraction; lod_scale 0: all."""
-    from usdfiber.translators import lod
+    from usdfiber.translators.mitsuba import lod
 
     assert (lod.FAR_YARN_PIXELS, lod.FIBERS_PER_PIXEL, lod.MIN_FIBER_FRACTION, lod.WIDEN_EXPONENT) == (3.0, 4.0, 0.5, 1.0)
     assert lod.far_yarn(2.9) and not lod.far_yarn(3.0) and not lod.far_yarn(8.0)
@@ -184,7 +184,7 @@ def test_twist_from_geometry(ply_dir, fiber_dir):
 def test_geometry_matches_model_equations(plies):
     """Ply fibers on a straight z yarn (frame n = x, b = y) against eqs. Y2-Y6 written out
     here, with the fibers' random rest radius and angles taken from the generator."""
-    from usdfiber.translators.yarns import _fiber_set
+    from usdfiber.translators.mitsuba.yarns import _fiber_set
 
     p = cne50(**CONTINUOUS, **{"yarn:plies": plies, "yarn:ply:compression": (1.2, 0.7),
                                "yarn:fiber:migration": (0.6, 1.1),

@@ -1,1 +1,2 @@
-"""Translators from USD stages to renderers (``usdfiber.translators``)."""
+"""Renderer bridges (``usdfiber.translators``): one sub-package per renderer, each depending on
+the core (:mod:`usdfiber`) only. The core never imports a bridge."""

@@ -2,7 +2,7 @@
 
 Steps, each timed: validate the stage (the checks of ``usdfiber check``; errors refuse the
 render), resolve the fiber tables (baking missing ones, with progress), translate
-(:mod:`usdfiber.translators.scene`), render in passes (progress and time left), write a
+(:mod:`usdfiber.translators.mitsuba.scene`), render in passes (progress and time left), write a
 linear EXR with metadata and a display-referred PNG (:mod:`usdfiber.image_output`).
 
 Passes: the samples per pixel are split into passes of at most ``pass_spp`` samples, each
@@ -124,8 +124,8 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
 
     from dataclasses import replace
 
-    from usdfiber.translators.scene import RENDER_BAKE_SETTINGS, SceneOptions, TranslateError, translate_stage
-    from usdfiber.translators.yarn_far_field import YarnBakeSettings
+    from usdfiber.translators.mitsuba.scene import RENDER_BAKE_SETTINGS, SceneOptions, TranslateError, translate_stage
+    from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
 
     bake = RENDER_BAKE_SETTINGS
     try:

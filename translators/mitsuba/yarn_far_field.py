@@ -93,7 +93,7 @@ class YarnFarField:
     """A yarn's tabulated far field: the layout of a rotationally symmetric fiber table.
 
     Duck-types the parts of :class:`usdfiber.bake.table.BcsdfTable` the renderer's
-    :class:`~usdfiber.translators.fiber_bank.FiberBank` reads (``grid``, ``band_start``,
+    :class:`~usdfiber.translators.mitsuba.fiber_bank.FiberBank` reads (``grid``, ``band_start``,
     ``arrays["width"]``, ``baked_diameter_um``, ``recolour``); its colour is traced in, so
     :meth:`recolour` ignores the absorption it is given. Arrays:
 
@@ -178,7 +178,7 @@ def yarn_piece(params: Any, fiber_diameter: float, settings: YarnBakeSettings, s
     segments lie outside it (the tracer only sees the fibers between the ends; staple fibers
     still end inside, as they do in the yarn).
     """
-    from usdfiber.translators.yarns import expand_yarn
+    from usdfiber.translators.mitsuba.yarns import expand_yarn
 
     r_guess = params.max_fiber_distance + 0.5 * fiber_diameter
     lz = settings.length_diameters * 2.0 * r_guess
@@ -217,10 +217,10 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
                     progress: Callable[[int, int], None] | None = None,
                     header: dict[str, Any] | None = None) -> YarnFarField:
     """Trace ``settings.photons`` photons per theta_i node through ``piece`` whose fibers
-    scatter with ``bsdf`` (a :func:`~usdfiber.translators.fiber_bsdf.fiber_bsdf` for the
+    scatter with ``bsdf`` (a :func:`~usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf` for the
     piece's segments) and tabulate the far field (module docstring)."""
     from usdfiber.backend import mitsuba
-    from usdfiber.translators.curves import make_curve_shape
+    from usdfiber.translators.mitsuba.curves import make_curve_shape
 
     mi = mitsuba()
     import drjit as dr
@@ -423,9 +423,9 @@ def bake_yarn_far_field(params: Any, fiber_diameter: float, slots: Sequence[Any]
     are the cross-section variants ``slots`` (:class:`~.fiber_bank.FiberSlot`: table and
     colour), each fiber with a random variant and rotation psi, as the renderer draws them."""
     from usdfiber.backend import mitsuba
-    from usdfiber.translators.curves import reference_normals
-    from usdfiber.translators.fiber_bank import FiberBank
-    from usdfiber.translators.fiber_bsdf import fiber_bsdf
+    from usdfiber.translators.mitsuba.curves import reference_normals
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank
+    from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
     mi = mitsuba()
     st = settings or YarnBakeSettings()

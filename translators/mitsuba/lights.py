@@ -67,7 +67,7 @@ from pxr import Usd, UsdGeom, UsdLux
 
 from usdfiber.fiber_params import _CIE_1931, _CIE_START_NM, _CIE_STEP_NM, _XYZ_TO_REC709
 
-from .render_settings import TranslationError, as_timecode, to_mi_transform
+from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode, to_mi_transform
 
 __all__ = [
     "blackbody_rgb",

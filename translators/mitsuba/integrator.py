@@ -5,7 +5,7 @@ tracer with next-event estimation and multiple importance sampling (power heuris
 algorithm of Mitsuba 3.9.1's ``path`` (``src/integrators/path.cpp``: same sample dimensions in
 the same order, emitter hits weighted against the previous BSDF sample, ``max_depth``,
 ``rr_depth``, ``hide_emitters``), with two changes for BSDFs that have a ``Null`` component
-(the pass-through of non-round fibers and yarn far fields, :mod:`usdfiber.translators.fiber_bsdf`):
+(the pass-through of non-round fibers and yarn far fields, :mod:`usdfiber.translators.mitsuba.fiber_bsdf`):
 
 * **Pass-throughs are not bounces.** A path that passes a surface goes on straight from the
   hit with weight 1 (the null sample's weight). That does not count towards ``max_depth`` or
@@ -29,7 +29,7 @@ Where the pass-through is decided. Generic (any BSDF with a ``Null`` component, 
 property ``fiber_pass`` false): as ``volpath``, the BSDF decides in ``sample`` at every hit
 (null with probability ``1 - q``), and next-event estimation is done at every hit before,
 with the full ``eval`` and ``pdf`` (both carry the factor ``q``). Fibers (the default when the
-scene's only BSDF with a ``Null`` component is one :func:`~usdfiber.translators.fiber_bsdf.fiber_bsdf`
+scene's only BSDF with a ``Null`` component is one :func:`~usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf`
 instance, as ``translate_stage`` makes): the integrator asks that BSDF for ``q`` at the hit
 (its own ``_q``, the number ``eval``, ``pdf`` and ``sample`` use) and decides with a sample of
 its own, in a short loop that only intersects and looks up ``q`` until a fiber scatters or the
@@ -133,7 +133,7 @@ def integrator_class(mi: Any) -> type:
         return _CLASSES[variant]
     import drjit as dr
 
-    from usdfiber.translators.fiber_bsdf import bsdf_class
+    from usdfiber.translators.mitsuba.fiber_bsdf import bsdf_class
 
     fiber_cls = bsdf_class(mi)
 

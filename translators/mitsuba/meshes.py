@@ -68,8 +68,8 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom, UsdShade
 
-from .lights import load_image
-from .render_settings import TranslationError, as_timecode
+from usdfiber.translators.mitsuba.lights import load_image
+from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode
 
 __all__ = ["MaterialInfo", "material_bsdf", "mesh_shape", "mesh_shapes"]
 

@@ -1,17 +1,17 @@
 """A USD stage -> a Mitsuba 3 scene (:func:`translate_stage`).
 
 What is translated (everything visible, of the render purposes, at one time code, with
-native instances and point instancers expanded by :mod:`usdfiber.translators.stage_walk`):
+native instances and point instancers expanded by :mod:`usdfiber.translators.mitsuba.stage_walk`):
 
 * fiber curves (BasisCurves with FiberAPI): one B-spline shape with one tabulated-BCSDF
-  instance for all of them (:mod:`usdfiber.translators.fibers`); missing tables are baked first;
+  instance for all of them (:mod:`usdfiber.translators.mitsuba.fibers`); missing tables are baked first;
   yarn curves (FiberYarnAPI) are expanded into fibers where the camera sees them, at the
-  detail it resolves (:mod:`usdfiber.translators.yarns`, :mod:`usdfiber.translators.lod`);
+  detail it resolves (:mod:`usdfiber.translators.mitsuba.yarns`, :mod:`usdfiber.translators.mitsuba.lod`);
 * other BasisCurves: B-spline curves with a grey diffuse BSDF (a warning names them);
-* meshes with their UsdPreviewSurface materials (:mod:`usdfiber.translators.meshes`);
-* UsdLux lights (:mod:`usdfiber.translators.lights`), or a documented default rig when the stage has
+* meshes with their UsdPreviewSurface materials (:mod:`usdfiber.translators.mitsuba.meshes`);
+* UsdLux lights (:mod:`usdfiber.translators.mitsuba.lights`), or a documented default rig when the stage has
   none; the camera named by the options or the render settings, else the first camera of
-  the stage, else one framing the visible geometry (:mod:`usdfiber.translators.camera`).
+  the stage, else one framing the visible geometry (:mod:`usdfiber.translators.mitsuba.camera`).
 
 Other gprims (spheres, cubes, points, volumes...) are skipped with a warning.
 """
@@ -28,16 +28,16 @@ from usdfiber.backend import mitsuba
 from usdfiber.bake.baker import BakeSettings
 from usdfiber.bake.cache import TableCache
 
-from usdfiber.translators.camera import camera_sensor, default_camera
-from usdfiber.translators.curves import CurveError, concatenate, curves_from_prim, make_curve_shape
-from usdfiber.translators.fiber_bsdf import fiber_bsdf
-from usdfiber.translators.yarn_far_field import YarnBakeSettings
-from usdfiber.translators.fibers import FiberTranslation, TranslateError, fiber_prim, translate_fibers
-from usdfiber.translators.lights import default_light, light_emitter
-from usdfiber.translators.lod import camera_view
-from usdfiber.translators.meshes import mesh_shapes
-from usdfiber.translators.render_settings import RenderSettingsInfo, TranslationError, read_render_settings, stage_bbox
-from usdfiber.translators.stage_walk import walk
+from usdfiber.translators.mitsuba.camera import camera_sensor, default_camera
+from usdfiber.translators.mitsuba.curves import CurveError, concatenate, curves_from_prim, make_curve_shape
+from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
+from usdfiber.translators.mitsuba.fibers import FiberTranslation, TranslateError, fiber_prim, translate_fibers
+from usdfiber.translators.mitsuba.lights import default_light, light_emitter
+from usdfiber.translators.mitsuba.lod import camera_view
+from usdfiber.translators.mitsuba.meshes import mesh_shapes
+from usdfiber.translators.mitsuba.render_settings import RenderSettingsInfo, TranslationError, read_render_settings, stage_bbox
+from usdfiber.translators.mitsuba.stage_walk import walk
 
 __all__ = ["RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "TranslateError", "fiber_integrator", "translate_stage"]
 
@@ -55,13 +55,13 @@ def fiber_integrator(mi: Any, bsdf: Any) -> str:
     """The integrator for a scene whose fibers use ``bsdf`` (None: no fibers).
 
     Fibers that let rays pass (a ``Null`` component: non-round profiles, W < D, and yarn far
-    fields) render with ``usdfiber_path`` (:mod:`usdfiber.translators.integrator`, registered
+    fields) render with ``usdfiber_path`` (:mod:`usdfiber.translators.mitsuba.integrator`, registered
     here), a path tracer whose shadow rays pass them through ``eval_null_transmission`` and
     whose pass-throughs are not bounces; Mitsuba's ``path`` treats the tubes as opaque to
     shadow rays. Everything else renders with ``path``.
     """
     if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
-        from usdfiber.translators.integrator import PLUGIN_NAME, register
+        from usdfiber.translators.mitsuba.integrator import PLUGIN_NAME, register
 
         register(mi)
         return PLUGIN_NAME

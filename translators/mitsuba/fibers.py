@@ -32,12 +32,12 @@ from usdfiber.bake.table import BcsdfTable
 from usdfiber.bcsdf import tables_for_prim
 from usdfiber.fiber_params import FiberParams, FiberParamsError
 
-from usdfiber.translators.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
+from usdfiber.translators.mitsuba.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
                                          reference_normals)
-from usdfiber.translators.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.lod import CameraView, far_yarn, fiber_fraction, fiber_widening
-from usdfiber.translators.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
-from usdfiber.translators.yarns import ExpandedFibers, YarnError, YarnParams, expand_yarn
+from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.lod import CameraView, far_yarn, fiber_fraction, fiber_widening
+from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
+from usdfiber.translators.mitsuba.yarns import ExpandedFibers, YarnError, YarnParams, expand_yarn
 
 __all__ = ["FiberTranslation", "TranslateError", "fiber_prim", "translate_fibers"]
 
@@ -53,7 +53,7 @@ def fiber_prim(prim: Usd.Prim) -> bool:
 
 @dataclass
 class FiberTranslation:
-    """The fiber curves of a stage, ready for :func:`usdfiber.translators.fiber_bsdf.fiber_bsdf`."""
+    """The fiber curves of a stage, ready for :func:`usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf`."""
 
     geometry: CurveGeometry
     bank: FiberBank
@@ -225,11 +225,11 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
                      settings: BakeSettings, cache: TableCache | None = None, bake_missing: bool = True,
                      progress: Callable[..., Any] | None = None, view: CameraView | None = None,
                      lod_scale: float = 1.0, yarn_settings: YarnBakeSettings | None = None) -> FiberTranslation | None:
-    """The fiber curves of ``placements`` (:class:`usdfiber.translators.stage_walk.Placement` of fiber
+    """The fiber curves of ``placements`` (:class:`usdfiber.translators.mitsuba.stage_walk.Placement` of fiber
     prims) with their tables (baked with ``settings`` when missing); None without fibers.
 
-    Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.translators.yarns`)
-    with the level of detail of ``view`` (:mod:`usdfiber.translators.lod`; None: every yarn at
+    Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.translators.mitsuba.yarns`)
+    with the level of detail of ``view`` (:mod:`usdfiber.translators.mitsuba.lod`; None: every yarn at
     full detail); yarns too small to resolve, and those with ``yarn:expandFibers`` false, are
     drawn as one curve each with the yarn's far field (:mod:`.yarn_far_field`, traced with
     ``yarn_settings`` when missing).

@@ -110,7 +110,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .curves import CurveGeometry, reference_normals
+from usdfiber.translators.mitsuba.curves import CurveGeometry, reference_normals
 
 __all__ = [
     "YarnError",

@@ -20,7 +20,7 @@ fiber is
 
 (reciprocity of the scattering cross section ``sigma``), with no cosine to the tube's
 normal: the far field does not depend on where across the tube the ray hit. ``sample``
-draws ``omega_l`` from the undyed ``p0(. | omega_v)`` (:mod:`usdfiber.translators.fiber_bank`): the
+draws ``omega_l`` from the undyed ``p0(. | omega_v)`` (:mod:`usdfiber.translators.mitsuba.fiber_bank`): the
 weight ``Lambda p / p0`` is the albedo for an undyed fiber and near or below 1 for a dyed
 one; its mean is the albedo.
 
@@ -30,18 +30,18 @@ probability ``q = W(phi_v) / D`` and otherwise passes straight on (a ``Null`` co
 so the pixel sees the fiber over ``W`` as it should; ``eval`` and ``pdf`` include the
 factor ``q``. Shadow rays pass too, through ``eval_null_transmission`` (0 or 1, 1 with
 probability ``1 - q``), but only integrators that call it honour it: ``volpath`` and our
-``usdfiber_path`` (:mod:`usdfiber.translators.integrator`) do, and do not count null events
+``usdfiber_path`` (:mod:`usdfiber.translators.mitsuba.integrator`) do, and do not count null events
 towards a path's depth. ``path`` tests shadow rays against the tube as if it were opaque
 (a shadow as wide as ``D``) and counts pass-throughs as bounces. So the translator
-(:mod:`usdfiber.translators.scene`) renders with ``usdfiber_path`` whenever a BSDF has the
+(:mod:`usdfiber.translators.mitsuba.scene`) renders with ``usdfiber_path`` whenever a BSDF has the
 ``Null`` component, and with ``path`` otherwise (round fibers: ``W = D``, no pass-through).
 
-Yarn far fields (:mod:`usdfiber.translators.yarn_far_field`) are slots of the round family
+Yarn far fields (:mod:`usdfiber.translators.mitsuba.yarn_far_field`) are slots of the round family
 drawn on a curve of the yarn's bounding width: there ``q`` is the far field's coverage, the
 fraction of rays meeting the tube that meet a fiber, a function of ``theta_v``.
 
 Storage: per node one float16 4-vector (``Lambda p`` RGB and ``p0``, scaled by a power of
-two per family, :meth:`~usdfiber.translators.fiber_bank.Family.node_table`), converted to
+two per family, :meth:`~usdfiber.translators.mitsuba.fiber_bank.Family.node_table`), converted to
 float32 before any arithmetic: values carry a relative rounding error of at most 2^-11.
 The sampler's CDFs are float32 integrals of the same rounded ``p0``, so sampling draws from
 the density that ``pdf`` reports.
@@ -53,7 +53,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from usdfiber.translators.fiber_bank import Family, FiberBank
+from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank
 
 __all__ = ["PLUGIN_NAME", "bsdf_class", "fiber_bsdf", "register"]
 
@@ -267,7 +267,7 @@ def bsdf_class(mi: Any) -> type:
             made perpendicular to the tangent (world +x for fibers along z).
             """
             from usdfiber.bake.table import BcsdfTable
-            from usdfiber.translators.fiber_bank import FiberSlot
+            from usdfiber.translators.mitsuba.fiber_bank import FiberSlot
 
             table = BcsdfTable.load(str(props.get("table")))
             mu = props.get("mu_a", 0.0)

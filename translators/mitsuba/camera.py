@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .render_settings import TranslationError, as_timecode, to_mi_transform
+from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode, to_mi_transform
 
 __all__ = ["CameraWarning", "CONFORM_POLICIES", "camera_sensor", "conform_aperture", "default_camera"]
 
