@@ -2,7 +2,7 @@
 PYTHON ?= python3
 export PYTHON
 
-.PHONY: setup demo test test-all
+.PHONY: setup demo test test-all test-widths docs
 setup:
 	@bash tools/setup.sh
 
@@ -15,3 +15,23 @@ test: setup
 # Includes the long physics runs (marked slow).
 test-all: setup
 	$(PYTHON) -m pytest -q -m ""
+
+# The Monte-Carlo test files with Dr.Jit's kernels compiled for 8 float lanes (AVX2) and for
+# 16 (AVX-512, where the CPU has it): random streams differ between the two, and every
+# statistical assertion must hold on both (docs/testing.md).
+MC_TESTS ?= tests/test_integrator.py tests/test_fiber_bsdf.py tests/test_tracer.py \
+	tests/test_reference_tracer.py tests/test_table.py tests/test_yarn_far_field.py \
+	tests/test_hair_comparison.py tests/test_lod_bound.py tests/test_translate_lights.py \
+	tests/test_recolour.py
+test-widths: setup
+	USDFIBER_TEST_VECTOR_WIDTH=8 $(PYTHON) -m pytest -q $(MC_TESTS)
+	@if grep -qw avx512f /proc/cpuinfo; then \
+		echo USDFIBER_TEST_VECTOR_WIDTH=16 $(PYTHON) -m pytest -q $(MC_TESTS); \
+		USDFIBER_TEST_VECTOR_WIDTH=16 $(PYTHON) -m pytest -q $(MC_TESTS); \
+	else echo "test-widths: no AVX-512 on this CPU, 16 lanes not run"; fi
+
+# The API reference of usdfiber and usdfiber.translators (pdoc): build/docs/index.html.
+# Fails on a module that does not import or has no docstring, a pdoc warning or a broken
+# docstring reference.
+docs: setup
+	$(PYTHON) docs/api_reference.py -o build/docs

@@ -35,7 +35,7 @@ Parts:
   conversion) / USD read / reference normals / BSDF / curve shape / Mitsuba scene + BVH, and
   render time. For stages that cannot be translated, the segment counts are ESTIMATED by
   expanding one yarn of each distinct shape with the translator's own code (``expand_yarn`` at
-  the LOD fraction that ``lod.fiber_fraction`` gives every yarn under the stage's camera).
+  the LOD fraction that ``LodPolicy.fiber_fraction`` gives every yarn under the stage's camera).
 * ``lod``: a small plain weave seen from 2-4 camera distances at ``--lod-res`` (near: yarns of
   8.4 px, mid: 4.7 px, whole: 2.8 px, far: 0.9 px at 160 px). Reference: ``lod_scale`` 0 (every
   fiber), translated once with the widest camera (nothing culled) and rendered from every
@@ -62,7 +62,7 @@ import tempfile
 import time
 import traceback
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import bench_common  # noqa: E402
@@ -73,7 +73,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 RESULTS = ROOT / "bench" / "results"
-SOURCES = ("translators/mitsuba/lod.py", "translators/mitsuba/yarns.py", "translators/mitsuba/fibers.py", "translators/mitsuba/curves.py",
+SOURCES = ("translators/mitsuba/lod.py", "usdfiber/geometry/yarn.py", "usdfiber/geometry/yarn_fibers.py",
+           "usdfiber/geometry/yarn_flyaways.py", "usdfiber/spec/yarn.py", "translators/mitsuba/fibers.py",
+           "usdfiber/geometry/curves.py", "translators/mitsuba/curves.py",
            "translators/mitsuba/scene.py", "translators/mitsuba/fiber_bsdf.py", "translators/mitsuba/fiber_bank.py", "usdfiber/cloth.py")
 BAKE = {"resolution_deg": 10.0, "photons": 20_000, "batches": 4}
 DEFAULT_CACHE = "/tmp/usdfiber-cache-clothbench"
@@ -264,17 +266,24 @@ def _render_halves(mi: Any, scene: Any, spp: int, seeds: tuple[int, ...], sensor
     return imgs, t.wall, t.cores
 
 
-def install_lod_variant(overrides: dict[str, float]) -> None:
-    """EXPERIMENT (not the shipped values): set constants of ``translators.lod`` in this worker,
-    e.g. ``{"MIN_FIBER_FRACTION": 0.25, "WIDEN_EXPONENT": 1.0}`` (the translator reads them at
-    call time). WIDEN_EXPONENT 1 keeps the yarn's summed projected fiber width (its coverage when
-    the fibers do not overlap); 0.5 keeps the summed cross-section area."""
-    from usdfiber.translators.mitsuba import lod
+#: --variants names (the lod module's constants) -> LodPolicy fields.
+LOD_FIELDS = {"FAR_YARN_PIXELS": "far_yarn_pixels", "FIBERS_PER_PIXEL": "fibers_per_pixel",
+              "MIN_FIBER_FRACTION": "min_fiber_fraction", "WIDEN_EXPONENT": "widen_exponent"}
 
-    for k, v in overrides.items():
-        if not hasattr(lod, k):
-            raise KeyError(f"translators.lod has no {k}")
-        setattr(lod, k, float(v))
+
+def lod_policy(overrides: dict[str, float] | None) -> Any:
+    """EXPERIMENT (not the shipped values): the default LodPolicy with ``overrides`` (constant
+    names of ``translators/mitsuba/lod.py``, e.g. ``{"MIN_FIBER_FRACTION": 0.25, "WIDEN_EXPONENT": 1.0}``).
+    WIDEN_EXPONENT 1 keeps the yarn's summed projected fiber width (its coverage when the fibers
+    do not overlap); 0.5 keeps the summed cross-section area."""
+    from dataclasses import replace
+
+    from usdfiber.translators.mitsuba.lod import LodPolicy
+
+    unknown = sorted(set(overrides or {}) - set(LOD_FIELDS))
+    if unknown:
+        raise KeyError(f"no level-of-detail constant {', '.join(unknown)} (known: {', '.join(LOD_FIELDS)})")
+    return replace(LodPolicy(), **{LOD_FIELDS[k]: float(v) for k, v in (overrides or {}).items()})
 
 
 def _variant_label(overrides: dict[str, float] | None) -> str:
@@ -329,10 +338,9 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
         mi = mitsuba()
         import drjit as dr  # noqa: F401
 
-        from usdfiber.bake.baker import BakeSettings
+        from usdfiber.bake.settings import BakeSettings
         from usdfiber.bake.cache import TableCache
-        from usdfiber.translators.mitsuba import fibers as F
-        from usdfiber.translators.mitsuba import scene as S
+        from usdfiber.translators.mitsuba.profile import TranslationProfile
         from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
     out["import_seconds"] = t.wall
     prog("imported")
@@ -349,65 +357,37 @@ def _work(job: dict[str, Any], out: dict[str, Any], prog: Progress) -> None:
         out["validate"] = {"seconds": t.wall, "errors": len(rep.errors), "warnings": len(rep.warnings)}
         prog("validated")
 
-    pieces: dict[str, float] = {}
     yarn_progress = {"yarns": 0, "points": 0}
 
-    def wrap(obj: Any, name: str, key: str, after: Callable[[Any], None] | None = None) -> None:
-        orig = getattr(obj, name)
-
-        def timed(*a: Any, **k: Any) -> Any:
-            t0 = time.perf_counter()
-            try:
-                res = orig(*a, **k)
-            finally:
-                pieces[key] = pieces.get(key, 0.0) + time.perf_counter() - t0
-            if after is not None:
-                after(res)
-            return res
-
-        setattr(obj, name, timed)
-
-    def count_yarn(ex: Any) -> None:
-        yarn_progress["yarns"] += 1
-        yarn_progress["points"] += int(len(ex.points))
-        if yarn_progress["yarns"] % 250 == 0:
-            prog("expanding", **yarn_progress)
-
-    if job.get("lod_overrides"):
-        install_lod_variant(job["lod_overrides"])
-    from usdfiber.translators.mitsuba import lod as _lod
-
-    out["lod_constants"] = {k: getattr(_lod, k) for k in ("FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "MIN_FIBER_FRACTION",
-                                                          "WIDEN_EXPONENT") if hasattr(_lod, k)}
-    wrap(F, "curves_from_prim", "usd_read")
-    wrap(F, "_sample_curve", "centre_sampling")
-    wrap(F, "expand_yarn", "expand_yarn", count_yarn)
-    wrap(F, "_expand_yarns", "yarn_expansion_total")
-    wrap(F, "reference_normals", "reference_normals")
-    wrap(S, "fiber_bsdf", "bsdf")
-    wrap(S, "make_curve_shape", "curve_shape")
-    orig_load = mi.load_dict
-
-    def load_dict(d: Any, *a: Any, **k: Any) -> Any:
-        if isinstance(d, dict) and d.get("type") == "scene":
+    def listen(step: str, result: Any) -> None:
+        if step == "expand_yarn":
+            yarn_progress["yarns"] += 1
+            yarn_progress["points"] += int(len(result.points))
+            if yarn_progress["yarns"] % 250 == 0:
+                prog("expanding", **yarn_progress)
+        elif step == "curve_shape":
             prog("mitsuba scene")
-            t0 = time.perf_counter()
-            try:
-                return orig_load(d, *a, **k)
-            finally:
-                pieces["scene_bvh"] = pieces.get("scene_bvh", 0.0) + time.perf_counter() - t0
-        return orig_load(d, *a, **k)
 
-    mi.load_dict = load_dict
+    profile = TranslationProfile(listener=listen)
+    policy = lod_policy(job.get("lod_overrides"))
+    out["lod_constants"] = {k: getattr(policy, f) for k, f in LOD_FIELDS.items()}
     spec = job["spec"]
     w, h = spec["res"]
     opts = SceneOptions(resolution=(w, h), spp=1, camera=f"/Cams/{job['camera']}", bake=BakeSettings(**BAKE),
-                        bake_missing=True, cache=TableCache(job["cache"]), lod_scale=float(job["lod_scale"]))
+                        bake_missing=True, cache=TableCache(job["cache"]), lod_scale=float(job["lod_scale"]),
+                        lod=policy, profile=profile)
     prog("translating")
     out["load_translate_start"] = _load()
-    out.update(pieces=pieces, yarn_progress=yarn_progress)
+    out.update(pieces=profile.seconds, yarn_progress=yarn_progress)   # so far, should it run out of memory
     with Timer() as t:
         tr = translate_stage(stage, opts)
+    # The translation's steps under this report's names.
+    names = {"curves": "usd_read", "centre_sampling": "centre_sampling", "expand_yarn": "expand_yarn",
+             "reference_normals": "reference_normals", "bsdf": "bsdf", "curve_shape": "curve_shape",
+             "scene": "scene_bvh"}
+    pieces = {names[k]: v for k, v in profile.seconds.items() if k in names}
+    # Planning the level of detail and expanding the planned yarns: the yarns' whole cost.
+    pieces["yarn_expansion_total"] = profile.seconds.get("yarn_lod", 0.0) + profile.seconds.get("yarn_expansion", 0.0)
     out.update(translate_seconds=t.wall, translate_cores=t.cores, times=tr.times, counts=tr.counts, pieces=pieces,
                hwm_after_translate_mib=proc_status_mib("VmHWM"), rss_after_translate_mib=proc_status_mib("VmRSS"),
                yarn_progress=yarn_progress)
@@ -530,7 +510,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     """Fiber curves and segments of a square N x N plain weave at each lod_scale, ESTIMATED with
     the translator's own code, without building the stage: warp i has the shape of warp (i % 2)
     of a 2 x N weave moved along x, weft j that of warp ((j + 1) % 2) with x and y swapped (the
-    weave's symmetry). Each yarn's LOD fraction is lod.fiber_fraction of its pixel footprint
+    weave's symmetry). Each yarn's LOD fraction is LodPolicy.fiber_fraction of its pixel footprint
     under the stage's camera (as _expand_yarns computes it); its counts are those of expand_yarn
     on that shape at that fraction."""
     import usdfiber  # noqa: F401
@@ -539,8 +519,9 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     from usdfiber import cloth
     from usdfiber.translators.mitsuba import lod
     from usdfiber.translators.mitsuba.curves import curves_from_prim
-    from usdfiber.translators.mitsuba.fibers import _pixel_polyline, _yarn_polylines
-    from usdfiber.translators.mitsuba.yarns import YarnParams, expand_yarn
+    from usdfiber.translators.mitsuba.fibers import pixel_polyline, yarn_polylines
+    from usdfiber.geometry.yarn import expand_yarn
+    from usdfiber.spec.yarn import YarnParams
 
     n = spec["warps"]
     assert spec["kind"] == "weave" and spec["wefts"] == n
@@ -549,7 +530,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     prim = s2.GetPrimAtPath("/W/Warp")
     yp = YarnParams.from_prim(prim)
     geom = curves_from_prim(prim, Usd.TimeCode.Default(), np.eye(4), default_width=2 * yp.yarn_radius)
-    polys = list(_yarn_polylines(geom))
+    polys = list(yarn_polylines(geom))
     spacing = float(polys[1][0][0, 0] - polys[0][0][0, 0])
     # The N x N stage's box, as its authored extents give it (control points +- half width).
     cp = np.array(prim.GetAttribute("points").Get(), np.float64)
@@ -561,6 +542,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     cam = list(spec["cameras"])[0]
     w, h = spec["res"]
     view = lod.camera_view(cam_stage.GetPrimAtPath(f"/Cams/{cam}"), Usd.TimeCode.Default(), w, h)
+    policy = lod.LodPolicy()
     shapes = []                                    # (parity, pixels) per yarn
     for i in range(n):
         k = i % 2
@@ -589,12 +571,12 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
         fr_all = []
         far = 0
         for k, p in shapes:
-            if lod.far_yarn(p, lod_scale=scale):      # one curve with the yarn's far field
+            if policy.far_yarn(p, lod_scale=scale):      # one curve with the yarn's far field
                 far += 1
                 pts, rad = polys[k]
-                segs += len(_pixel_polyline(pts, 2 * float(rad.max()) / p)) - 1
+                segs += len(pixel_polyline(pts, 2 * float(rad.max()) / p)) - 1
                 continue
-            fr = lod.fiber_fraction(p, yp.fiber_count, lod_scale=scale)
+            fr = policy.fiber_fraction(p, yp.fiber_count, lod_scale=scale)
             fr_all.append(fr)
             c, s = count(k, fr)
             curves += c
@@ -875,7 +857,7 @@ def prebake(cache_dir: Path) -> dict[str, Any]:
     from pxr import Usd, UsdGeom
 
     from usdfiber import authoring
-    from usdfiber.bake.baker import BakeSettings
+    from usdfiber.bake.settings import BakeSettings
     from usdfiber.bake.cache import TableCache
     from usdfiber.bcsdf import tables_for_prim
 

@@ -78,7 +78,7 @@ if str(ROOT) not in sys.path:
 
 RESULTS = ROOT / "bench" / "results"
 SOURCES = ("translators/mitsuba/fiber_bsdf.py", "translators/mitsuba/fiber_bank.py", "translators/mitsuba/curves.py",
-           "translators/mitsuba/fibers.py", "translators/mitsuba/scene.py", "translators/mitsuba/integrator.py", "usdfiber/render.py")
+           "translators/mitsuba/fibers.py", "translators/mitsuba/scene.py", "translators/mitsuba/integrator.py", "translators/mitsuba/render.py")
 TARGETS = {"time_per_spp_ratio_vs_hair": 1.3, "translate_seconds_1M_segments": 10.0}
 
 # Tables: polyester as `usdfiber render` bakes it on demand (RENDER_BAKE_SETTINGS: 6 deg,
@@ -322,7 +322,9 @@ def part_timing(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
     mi = mitsuba()
     import drjit as dr
 
-    from usdfiber.bake.baker import BakeSettings, bake_request, requests_from_preset
+    from usdfiber.bake.baker import bake_request
+    from usdfiber.bake.requests import requests_from_preset
+    from usdfiber.bake.settings import BakeSettings
     from usdfiber.translators.mitsuba.curves import make_curve_shape, reference_normals
     from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
     from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
@@ -557,7 +559,7 @@ def part_convergence(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str,
     mi = mitsuba()
     import drjit as dr
 
-    from usdfiber.bake.baker import requests_from_preset
+    from usdfiber.bake.requests import requests_from_preset
     from usdfiber.translators.mitsuba.curves import reference_normals
     from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
     from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
@@ -647,11 +649,9 @@ def scale_worker(args: argparse.Namespace) -> None:
     mi = mitsuba()
     import drjit as dr
 
-    from usdfiber.bake.baker import BakeSettings
+    from usdfiber.bake.settings import BakeSettings
     from usdfiber.bake.cache import TableCache
-    from usdfiber.translators.mitsuba import fibers as F
-    from usdfiber.translators.mitsuba import scene as S
-    from usdfiber.translators.mitsuba.fiber_bank import FiberBank
+    from usdfiber.translators.mitsuba.profile import TranslationProfile
     from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 
     out: dict[str, Any] = {"import_seconds": time.perf_counter() - t_import, "rss_after_import_mib": proc_status_mib("VmRSS")}
@@ -659,35 +659,7 @@ def scale_worker(args: argparse.Namespace) -> None:
         stage, n_seg = _fiber_stage(args.segments)
     out.update(segments=n_seg, author_seconds=t.wall, rss_after_stage_mib=proc_status_mib("VmRSS"))
 
-    pieces: dict[str, float] = {}
-
-    def wrap(obj: Any, name: str, key: str) -> None:
-        orig = getattr(obj, name)
-
-        def timed(*a: Any, **k: Any) -> Any:
-            t0 = time.perf_counter()
-            try:
-                return orig(*a, **k)
-            finally:
-                pieces[key] = pieces.get(key, 0.0) + time.perf_counter() - t0
-
-        setattr(obj, name, timed)
-
-    wrap(F, "curves_from_prim", "curves (USD read + B-spline conversion)")
-    wrap(F, "concatenate", "concatenate")
-    wrap(F, "reference_normals", "reference normals")
-    orig_build = FiberBank.build.__func__
-    FiberBank.build = classmethod(lambda cls, *a, **k: _timed_call(pieces, "fiber bank", orig_build, cls, *a, **k))
-    wrap(S, "fiber_bsdf", "BSDF (upload)")
-    wrap(S, "make_curve_shape", "curve shape (buffers)")
-    orig_load = mi.load_dict
-
-    def load_dict(d: Any, *a: Any, **k: Any) -> Any:
-        if isinstance(d, dict) and d.get("type") == "scene":
-            return _timed_call(pieces, "Mitsuba scene + BVH", orig_load, d, *a, **k)
-        return orig_load(d, *a, **k)
-
-    mi.load_dict = load_dict
+    profile = TranslationProfile()
     settings = BakeSettings(**json.loads(args.bake))
     cleared = False
     try:
@@ -700,9 +672,15 @@ def scale_worker(args: argparse.Namespace) -> None:
     sampler.start()
     with Timer() as t:
         tr = translate_stage(stage, SceneOptions(resolution=(args.res, args.res), spp=args.spp, bake=settings,
-                                                 bake_missing=False, cache=TableCache(Path(args.cache)), max_depth=8))
+                                                 bake_missing=False, cache=TableCache(Path(args.cache)), max_depth=8,
+                                                 profile=profile))
     sampler.stop = True
     sampler.join()
+    # The translation's steps under this report's names.
+    names = {"curves": "curves (USD read + B-spline conversion)", "concatenate": "concatenate",
+             "reference_normals": "reference normals", "fiber_bank": "fiber bank", "bsdf": "BSDF (upload)",
+             "curve_shape": "curve shape (buffers)", "scene": "Mitsuba scene + BVH"}
+    pieces = {names[k]: v for k, v in profile.seconds.items() if k in names}
     out.update(translate_seconds=t.wall, translate_cores=t.cores, pieces=pieces, times=tr.times,
                counts=tr.counts, peak_rss_mib=proc_status_mib("VmHWM") if cleared else None,
                peak_rss_sampled_mib=sampler.peak, hwm_reset=cleared, rss_after_translate_mib=proc_status_mib("VmRSS"))
@@ -717,14 +695,6 @@ def scale_worker(args: argparse.Namespace) -> None:
                          "finite": bool(np.all(np.isfinite(a))), "mean": float(a.mean()),
                          "peak_rss_mib": proc_status_mib("VmHWM")}
     print("RESULT " + json.dumps(out, default=_json_default))
-
-
-def _timed_call(pieces: dict[str, float], key: str, fn: Callable, *a: Any, **k: Any) -> Any:
-    t0 = time.perf_counter()
-    try:
-        return fn(*a, **k)
-    finally:
-        pieces[key] = pieces.get(key, 0.0) + time.perf_counter() - t0
 
 
 def part_scale(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
@@ -826,7 +796,7 @@ def main(argv: list[str] | None = None) -> int:
         os.environ["HOME"] = str(home)
 
     import usdfiber  # noqa: F401
-    from usdfiber.bake.baker import BakeSettings
+    from usdfiber.bake.settings import BakeSettings
     from usdfiber.translators.mitsuba.scene import RENDER_BAKE_SETTINGS
 
     t_start = time.perf_counter()

@@ -27,7 +27,7 @@ MM_PER_UM = 1e-3
 CLASS_ROOT = "/_fiberClasses"
 
 
-def _new_stage(doc: str, default: str) -> Usd.Stage:
+def new_stage(doc: str, default: str) -> Usd.Stage:
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 0.001)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -62,7 +62,7 @@ def _fiber_curves(stage: Usd.Stage, path: str, count: int, z0: float, diameter_u
 
 
 def make_fibers(out: Path) -> Path:
-    stage = _new_stage(
+    stage = new_stage(
         "Textile fibers of the five built-in kinds (Aliaga et al. 2017, Table 1). Each kind is a "
         "class prim with FiberAPI inherited by its fiber curves; cotton carries a depth-of-shade "
         "variant set; one fiber uses a user-drawn cross section. Units: mm.",
@@ -126,7 +126,7 @@ def _yarn_curve(stage: Usd.Stage, path: str, z: float, diameter_mm: float,
 
 
 def make_threads(out: Path) -> Path:
-    stage = _new_stage(
+    stage = new_stage(
         "The four Guetermann sewing threads of Aliaga et al. 2017, Table 3, as yarn centre "
         "lines with FiberYarnAPI and FiberAPI; widths are the yarn diameters. Units: mm.",
         "/Threads")
@@ -147,7 +147,7 @@ def make_threads(out: Path) -> Path:
 def make_demo(out: Path) -> Path:
     """The demo render: three tufts of dyed polyester fibers on a grey card, one camera,
     a dome and a key light. Polyester's round cross section bakes in seconds."""
-    stage = _new_stage(
+    stage = new_stage(
         "Demo: tufts of polyester fibers dyed with disperse red, yellow and blue at three depths "
         "of shade (Aliaga et al. 2017, Section 3.1), lying on a grey card. "
         "Render: usdfiber render examples/demo.usda -o demo.exr. Units: mm.",

@@ -37,7 +37,7 @@ from usdfiber.presets import FIBER_PRESETS, YARN_PRESETS
 
 # The example stages share one stage layout (mm, Y up, a default prim): make_examples.py's.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from make_examples import CLASS_ROOT, MM_PER_UM, _new_stage  # noqa: E402
+from make_examples import CLASS_ROOT, MM_PER_UM, new_stage  # noqa: E402
 
 # Horizontal field of view of every camera here: focal length 50, aperture 36 (a 36 mm
 # "full frame" back; only the ratio matters), so the view is 2 * 0.36 units wide per unit
@@ -159,7 +159,7 @@ def _yarn_piece(stage: Usd.Stage, path: str, x: float, z0: float, z1: float, dia
 # ------------------------------------------------------------------------------- Figure 11
 def make_fig11(out: Path) -> Path:
     """Figure 11: the four Table 3 threads side by side, each at three depths of shade."""
-    stage = _new_stage(
+    stage = new_stage(
         "Aliaga et al. 2017, Figure 11 / Table 3: the four Guetermann sewing threads (Skala 360 "
         "and ORA 120 polyester with disperse dyes, CNe 50 cotton and S 303 silk with reactive "
         "dyes) as 4 mm yarn pieces (FiberYarnAPI + FiberAPI from the Table 3 presets) lying on "
@@ -231,7 +231,7 @@ def fig7_linear_density(kind: str) -> float:
 
 def make_fig7(out: Path) -> Path:
     """Figure 7: one stockinette swatch per fiber kind, same dye and depth of shade."""
-    stage = _new_stage(
+    stage = new_stage(
         "Aliaga et al. 2017, Figure 7: the same stockinette (plain knit) swatch, 7 rows of 5 "
         "loops, with cotton, polyester, silk and wool fibers (left to right), all dyed "
         f"{FIG7_DYE} at a depth of shade of {FIG7_DOS:g} %. The yarn is the figure's (one "
@@ -278,7 +278,7 @@ def make_fig7(out: Path) -> Path:
 # ------------------------------------------------------------------------------- Figure 1
 def make_fig1(out: Path) -> Path:
     """Figure 1: a silk satin and a cotton garter."""
-    stage = _new_stage(
+    stage = new_stage(
         "Aliaga et al. 2017, Figure 1: a warp-faced 5-harness satin of silk thread (S 303, "
         f"reactive orange, {FIG1_SATIN_DOS:g} %; 20 x 20 yarns 1.4 yarn diameters apart) next to "
         f"a garter knit of cotton thread (CNe 50, reactive blue, {FIG1_GARTER_DOS:g} %; 8 rows "
@@ -313,7 +313,7 @@ def make_fig1(out: Path) -> Path:
 # ------------------------------------------------------------------------------- Figure 5
 def make_fig5(out: Path) -> Path:
     """Figure 5: silk fiber tufts at five depths of shade of one reactive dye."""
-    stage = _new_stage(
+    stage = new_stage(
         "Aliaga et al. 2017, Figure 5 (second row) and Section 3.1: tufts of 120 plain silk "
         f"fibers (BasisCurves with FiberAPI, inheriting a silk class) dyed {FIG5_DYE} at "
         "depths of shade 0.1, 0.5, 1, 2 and 4 % (left to right), lying on a grey card. One "

@@ -12,7 +12,8 @@ import usdfiber  # noqa: F401  (registers the schema before any stage is made)
 from pxr import Sdf, Usd, UsdGeom
 
 from usdfiber import authoring as A
-from usdfiber.fiber_params import FiberParams, FiberParamsError, spectrum_to_rec709
+from usdfiber.colour import spectrum_to_rec709
+from usdfiber.spec.fiber import FiberParams, FiberParamsError
 
 REPO = Path(__file__).resolve().parent.parent
 SCHEMA = REPO / "schema" / "schema.usda"
@@ -258,8 +259,8 @@ def test_authoring_errors(stage):
         A.apply_fiber(c, "cotton", dye="purple")
     with pytest.raises(A.AuthoringError, match="fiber:kind.*'linen' is not one of"):
         A.apply_fiber(c, "cotton", kind="linen")
-    with pytest.raises(A.AuthoringError, match="fiber:diameter is uniform"):
-        A.apply_fiber(c, "cotton", diameter={1: 10, 2: 20})
+    with pytest.raises(A.AuthoringError, match="fiber:density: is uniform"):
+        A.apply_fiber(c, "cotton", density={1: 1.3, 2: 1.5})
     with pytest.raises(A.AuthoringError, match="fiber:diameter: cannot use 'thick'"):
         A.apply_fiber(c, "cotton", diameter="thick")
     with pytest.raises(A.AuthoringError, match="both Ra/l and beta"):

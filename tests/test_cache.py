@@ -12,8 +12,10 @@ import usdfiber  # noqa: F401 - registers the schema
 from pxr import Usd, UsdGeom
 
 from usdfiber import authoring
-from usdfiber.bake.baker import BakeSettings, params_from_mapping, requests_for_params, tables_for_stage
-from usdfiber.bake.cache import TableCache, TableCacheWarning, cache_key, default_cache_dir
+from usdfiber.bake.baker import bake_request
+from usdfiber.bake.cache import TableCache, TableCacheWarning, cache_key, default_cache_dir, load_or_make
+from usdfiber.bake.requests import params_from_mapping, requests_for_params, tables_for_stage
+from usdfiber.bake.settings import BakeSettings
 from usdfiber.bcsdf import MissingTableError, load_table, tables_for_prim
 
 TINY = BakeSettings(resolution_deg=30, photons=2000, batches=2)
@@ -187,6 +189,71 @@ def test_resume_after_interrupted_bake(tmp_path):
     fresh = TableCache(tmp_path / "c2").get_or_bake(req, TINY).table
     for name, arr in fresh.arrays.items():
         assert np.array_equal(res.table.arrays[name], arr), name
+
+
+def test_unusable_resume_chunks_are_reported_and_traced_again(tmp_path):
+    """Every chunk names its bake and direction and carries checksums: a truncated chunk, a
+    chunk with a changed array, a chunk of another direction and a chunk of another bake are
+    each reported and traced again, and the table equals an uninterrupted bake."""
+    import zipfile
+
+    req = request(preset="silk", variant_count=1)
+    fresh = bake_request(req, TINY)
+    d, other = tmp_path / "resume", tmp_path / "other"
+    bake_request(req, TINY, resume_dir=d)                                     # keeps its chunks
+    bake_request(req, BakeSettings(resolution_deg=30, photons=2000, batches=2, seed=1), resume_dir=other)
+    data = (d / "d0000_0000.npz").read_bytes()
+    (d / "d0000_0000.npz").write_bytes(data[: len(data) // 2])              # truncated
+    with zipfile.ZipFile(d / "d0000_0001.npz") as z:                         # H changed, header kept
+        entries = {n: z.read(n) for n in z.namelist()}
+    with np.load(d / "d0000_0001.npz") as z:
+        H = z["H"].copy()
+    H.flat[0] += 1.0
+    buf = tmp_path / "H.npy"
+    np.save(buf, H)
+    entries["H.npy"] = buf.read_bytes()
+    with zipfile.ZipFile(d / "d0000_0001.npz", "w") as z:
+        for n, b in entries.items():
+            z.writestr(n, b)
+    (d / "d0001_0000.npz").write_bytes((d / "d0002_0000.npz").read_bytes())  # another direction
+    (d / "d0002_0003.npz").write_bytes((other / "d0002_0003.npz").read_bytes())  # another bake
+    with pytest.warns(RuntimeWarning) as caught:
+        again = bake_request(req, TINY, resume_dir=d)
+    msgs = sorted(str(w.message) for w in caught if "partial bake chunk" in str(w.message))
+    assert len(msgs) == 4, msgs
+    assert "d0000_0000.npz" in msgs[0] and "truncated or corrupt" in msgs[0]
+    assert "d0000_0001.npz" in msgs[1] and "checksum mismatch for array H" in msgs[1]
+    assert "d0001_0000.npz" in msgs[2] and "holds direction [2, 0]" in msgs[2]
+    assert "d0002_0003.npz" in msgs[3] and "another bake" in msgs[3]
+    for name, arr in fresh.arrays.items():
+        assert np.array_equal(again.arrays[name], arr), name
+
+
+def test_load_or_make_looks_again_under_the_lock():
+    """Double-checked locking: a value another process finished while this one waited for the
+    lock is loaded, not made again; without make_missing nothing is locked or made."""
+    events, store = [], {}
+
+    class Lock:
+        def __enter__(self):
+            events.append("lock")
+            store["v"] = "theirs"                 # finished by another process meanwhile
+
+        def __exit__(self, *exc):
+            events.append("unlock")
+
+    def make():
+        events.append("make")
+        return "mine"
+
+    assert load_or_make(lambda: store.get("v"), Lock, make) == ("theirs", False)
+    assert events == ["lock", "unlock"]
+    events.clear()
+    store.clear()
+    assert load_or_make(lambda: store.get("w"), Lock, make, make_missing=False) == (None, False)
+    assert events == []
+    assert load_or_make(lambda: store.get("w"), Lock, make) == ("mine", True)
+    assert events == ["lock", "make", "unlock"]
 
 
 def test_tables_for_prim_bakes_then_finds(tmp_path):

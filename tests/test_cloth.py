@@ -349,21 +349,21 @@ def test_fiber_override_and_dye(gen, kw):
     assert_clean(stage)
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda s: cloth.stockinette(s, "/C", rows=0), "rows"),
-    (lambda s: cloth.garter(s, "/C", loops=2.5), "loops"),
-    (lambda s: cloth.stockinette(s, "/C", loop_size=-1), "loop_size"),
-    (lambda s: cloth.plain_weave(s, "/C", warps=0), "warps"),
-    (lambda s: cloth.plain_weave(s, "/C", spacing=float("nan")), "spacing"),
-    (lambda s: cloth.satin(s, "/C", crimp=0), "crimp"),
-    (lambda s: cloth.stockinette(s, "/C", yarn="CNe 99"), "unknown yarn preset"),
-    (lambda s: cloth.plain_weave(s, "/C", fiber="nylon"), "unknown fiber preset"),
-    (lambda s: cloth.garter(s, "/C", dye="purple"), "unknown dye"),
-    (lambda s: cloth.stockinette(s, "relative/path"), "absolute prim path"),
+@pytest.mark.parametrize("call, error, match", [
+    (lambda s: cloth.stockinette(s, "/C", rows=0), cloth.ClothError, "rows"),
+    (lambda s: cloth.garter(s, "/C", loops=2.5), cloth.ClothError, "loops"),
+    (lambda s: cloth.stockinette(s, "/C", loop_size=-1), cloth.ClothError, "loop_size"),
+    (lambda s: cloth.plain_weave(s, "/C", warps=0), cloth.ClothError, "warps"),
+    (lambda s: cloth.plain_weave(s, "/C", spacing=float("nan")), cloth.ClothError, "spacing"),
+    (lambda s: cloth.satin(s, "/C", crimp=0), cloth.ClothError, "crimp"),
+    (lambda s: cloth.stockinette(s, "/C", yarn="CNe 99"), cloth.ClothError, "unknown yarn preset"),
+    (lambda s: cloth.plain_weave(s, "/C", fiber="nylon"), cloth.ClothError, "unknown fiber preset"),
+    (lambda s: cloth.garter(s, "/C", dye="purple"), authoring.AuthoringError, "unknown dye"),
+    (lambda s: cloth.stockinette(s, "relative/path"), cloth.ClothError, "absolute prim path"),
 ])
-def test_bad_parameters(call, match):
+def test_bad_parameters(call, error, match):
     stage = new_stage()
-    with pytest.raises(cloth.ClothError, match=match):
+    with pytest.raises(error, match=match):
         call(stage)
     assert not stage.GetPrimAtPath("/C")
 

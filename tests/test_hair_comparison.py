@@ -87,11 +87,14 @@ import pytest
 import usdfiber  # noqa: F401  (registers schemas first)
 from usdfiber.backend import mitsuba
 from usdfiber.bake import exact, profiles
-from usdfiber.bake.baker import BakeSettings, bake_table
+from usdfiber.bake.baker import bake_table
+from usdfiber.bake.settings import BakeSettings
 
 from usdfiber.translators.mitsuba.curves import CurveGeometry, make_curve_shape
 from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
 from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+
+from stats_util import z_limit
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the variant is set)
@@ -357,6 +360,10 @@ def test_sampled_weights_average_to_one(ours, hair):
         _, w_o = ours.sample(ctx, _si(_dirs(np.full(n, th), np.full(n, 0.3)), n), s1, s2)
         m_h, m_o = float(np.array(w_h)[0].mean()), float(np.array(w_o)[0].mean())
         print(f"\n[hair-comparison] theta_v {t:4.1f} deg: mean sample weight ours {m_o:.4f}, hair {m_h:.4f}")
+        # The bounds are for the models' bias. Noise stays far inside them: their standard
+        # errors (from the 400k weights) times z_limit fit in a fifth of each bound.
+        se_o, se_h = (float(np.array(w)[0].std()) / math.sqrt(n) for w in (w_o, w_h))
+        assert z_limit() * se_o < 0.002 and z_limit() * se_h < 0.004, (se_o, se_h)
         assert abs(m_o - 1.0) < 0.01 and abs(m_h - 1.0) < 0.02
 
 

@@ -5,10 +5,10 @@ import numpy as np
 
 import usdfiber  # noqa: F401  (registers schemas first)
 from usdfiber.backend import mitsuba
-from usdfiber.bake.baker import BakeSettings
+from usdfiber.bake.settings import BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.translators.mitsuba import lod
-from usdfiber.translators.mitsuba.yarns import YarnParams
+from usdfiber.spec.yarn import YarnParams
 
 mi = mitsuba()
 
@@ -97,5 +97,9 @@ def test_middle_step_image_matches_full_expansion(tmp_path):
     assert np.isfinite(lod1).all() and full.mean() > 0.01
     mean = lod1.mean() / full.mean() - 1.0
     blocks = block_rel_rmse(lod1, full)
+    # Bounds on a biased approximation, noise included. Two renders of every fiber with other
+    # seeds differ by 0.1 % (mean) and 0.041 (block RMSE, an average over 144 blocks x 3
+    # channels whose own relative spread is about 1 / sqrt(2 x 144) = 6 %): 5 % and 0.10 sit
+    # tens of standard deviations of the noise away (false failure far below 1e-4).
     assert abs(mean) < 0.05, (mean, blocks)
     assert blocks < 0.10, (mean, blocks)

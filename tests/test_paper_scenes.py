@@ -15,7 +15,7 @@ import pytest
 import usdfiber  # noqa: F401  (registers schemas first)
 from pxr import Usd, UsdGeom, UsdLux, UsdShade
 
-from usdfiber.bake.baker import BakeSettings
+from usdfiber.bake.settings import BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings

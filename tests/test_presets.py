@@ -15,7 +15,8 @@ from pxr import Usd, UsdGeom
 
 from usdfiber import presets as P
 from usdfiber.authoring import apply_fiber
-from usdfiber.fiber_params import FiberParams
+from usdfiber.spec.fiber import FiberParams
+from usdfiber.spec.yarn import yarn_diameter
 
 # Table 1: type, diameter um, density g/cm3, (eta_par, eta_perp), Ra nm (l nm), beta deg.
 PAPER_TABLE1 = {
@@ -139,9 +140,11 @@ def test_table3_published_values(name):
 
 
 def test_yarn_diameter_encloses_plies():
-    assert P.yarn_diameter_mm(1, 0.1) == pytest.approx(0.2)
-    assert P.yarn_diameter_mm(2, 0.1) == pytest.approx(0.4)
-    assert P.yarn_diameter_mm(3, 0.1) == pytest.approx(0.2 * (1 + 2 / math.sqrt(3)))
+    assert yarn_diameter(1, 0.1) == pytest.approx(0.2)
+    assert yarn_diameter(2, 0.1) == pytest.approx(0.4)
+    assert yarn_diameter(3, 0.1) == pytest.approx(0.2 * (1 + 2 / math.sqrt(3)))
+    for y in P.YARN_PRESETS.values():  # the presets' yarn width is the same formula
+        assert y.yarn_diameter_mm == yarn_diameter(y.published.plies, y.ply_radius_mm)
 
 
 def test_figure5_silk_deep_shade_mu_a():

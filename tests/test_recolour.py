@@ -9,21 +9,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from usdfiber.bake import profiles
 from usdfiber.bake import recolour as kernel_mod
-from usdfiber.bake.baker import BakeSettings, bake_table
-from usdfiber.bake.table import DEFAULT_LEVELS, LAYOUT, LAYOUT_VERSION, BcsdfTable, Grid
+from usdfiber.bake.absorption import DEFAULT_LEVELS
+from usdfiber.bake.grid import Grid
+from usdfiber.bake.storage import LAYOUT, LAYOUT_VERSION
+from usdfiber.bake.table import BcsdfTable
 
 pytestmark = pytest.mark.skipif(not kernel_mod.available(), reason="Dr.Jit has no LLVM backend here")
 
 # At a level, between levels (low, middle, high), beyond the last level (64), far beyond.
 SIGMAS = [0.0, 0.125, 0.3, 1.0, 2.7, 5.0, 20.0, 64.0, 100.0, 400.0]
-
-
-@pytest.fixture(scope="module")
-def silk_table():
-    silk = profiles.builtin_profiles("silk", 1)[0].centered().scaled_to_diameter(1.0)
-    return bake_table(silk, 1.55, 6.5, None, BakeSettings(resolution_deg=30, photons=8000, batches=2))
 
 
 def synthetic(seed: int = 0, res: float = 30.0, levels=DEFAULT_LEVELS, dtype=np.float16) -> BcsdfTable:

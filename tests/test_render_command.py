@@ -10,14 +10,15 @@ import usdfiber  # noqa: F401  (registers schemas first)
 from pxr import Gf, Usd, UsdGeom, UsdLux, Vt
 
 from usdfiber import authoring as A
-from usdfiber.bake.baker import BakeSettings
+from usdfiber.bake.settings import BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.cli import main
 from usdfiber.image_output import read_exr
 from usdfiber.translators.mitsuba import lod
+from usdfiber.translators.mitsuba.profile import STEPS, TranslationProfile
 from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
 from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
-from usdfiber.translators.mitsuba.yarns import YarnParams
+from usdfiber.spec.yarn import YarnParams
 
 FAST = ["--bake-resolution", "15", "--bake-photons", "4000"]
 FAST_SETTINGS = BakeSettings(resolution_deg=15, photons=4000, batches=4)
@@ -25,11 +26,10 @@ FAST_YARN_SETTINGS = YarnBakeSettings(30, photons=600)
 
 
 @pytest.fixture(autouse=True)
-def _cache(tmp_path_factory, monkeypatch):
-    # One cache for the module's tests: each distinct table is baked once.
-    root = tmp_path_factory.getbasetemp() / "render-cache"
-    monkeypatch.setenv("USDFIBER_CACHE_DIR", str(root))
-    return root
+def _cache(table_cache_dir, monkeypatch):
+    # The run's shared cache (conftest.py): each distinct table is baked once.
+    monkeypatch.setenv("USDFIBER_CACHE_DIR", str(table_cache_dir))
+    return table_cache_dir
 
 
 def _fibers(stage, path, dye, dos, z0, n=12, length=1.0, kind="polyester"):
@@ -298,6 +298,28 @@ def test_yarns_expand_with_culling_and_level_of_detail():
     off = translate_stage(_yarn_stage(5.0), SceneOptions(resolution=(64, 64), spp=1, bake=FAST_SETTINGS,
                                                            yarn_bake=FAST_YARN_SETTINGS, lod_scale=0.0))
     assert off.counts["yarn_fibers"] == c["yarn_fibers"]
+
+
+def test_level_of_detail_policy_and_profile_come_with_the_scene_options():
+    """The options carry the level-of-detail policy (what benchmarks vary instead of the module's
+    constants) and the profile that times the translation's steps."""
+    prof = TranslationProfile()
+    opts = dict(resolution=(64, 64), spp=1, bake=FAST_SETTINGS, yarn_bake=FAST_YARN_SETTINGS)
+    mid = translate_stage(_yarn_stage(5.0), SceneOptions(**opts, lod=lod.LodPolicy(min_fiber_fraction=0.8),
+                                                         profile=prof))
+    cm = mid.counts
+    assert cm["yarn_culled"] == 1 and cm["yarn_far"] == 0
+    assert cm["yarn_fibers"] / cm["yarn_fibers_full"] == pytest.approx(0.8, abs=0.02)   # default: 0.5
+    assert mid.profile is prof
+    assert prof.calls["yarn_expansion"] == 2 and prof.calls["expand_yarn"] == 1     # the culled yarn: none
+    assert prof.calls["bsdf"] == prof.calls["scene"] == prof.calls["fiber_bank"] == 1
+    assert all(prof.seconds[k] >= 0 for k in prof.calls) and set(prof.calls) <= set(STEPS)
+    # A policy whose far step reaches this 4.3 px yarn draws it with its far field.
+    far = translate_stage(_yarn_stage(5.0), SceneOptions(**opts, lod=lod.LodPolicy(far_yarn_pixels=5.0)))
+    assert far.counts["yarn_far"] == 1 and far.counts["yarn_fibers"] == 0
+    assert "expand_yarn" not in far.profile.calls
+    with pytest.raises(ValueError, match="min_fiber_fraction"):
+        lod.LodPolicy(min_fiber_fraction=0.0)
 
 
 def test_sub_pixel_yarns_use_their_far_field():

@@ -7,9 +7,9 @@ import pytest
 import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender
 
+from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.render_settings import (
     SPP_ATTR,
-    TranslationError,
     read_render_settings,
     stage_bbox,
     to_mi_transform,

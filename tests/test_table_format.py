@@ -65,6 +65,22 @@ def test_numpy_scalars_in_header(tmp_path):
     assert read_header(tmp_path / "t.npz")["photons"] == 5
 
 
+def test_other_container_names_are_kept_apart(tmp_path):
+    """The same container under another format name (the baker's resume chunks): no table
+    keys are required, and neither kind of file is read as the other."""
+    chunk, table = tmp_path / "chunk.npz", tmp_path / "table.npz"
+    write_table(chunk, {"bake_key": "k"}, {"x": np.arange(3.0)}, container="usdfiber-test-chunk")
+    write_table(table, header(), arrays())
+    h, a = read_table(chunk, container="usdfiber-test-chunk")
+    assert h["format"] == "usdfiber-test-chunk" and h["bake_key"] == "k" and np.array_equal(a["x"], np.arange(3.0))
+    with pytest.raises(TableError, match="not a usdfiber table .format is not 'usdfiber-bcsdf'"):
+        read_table(chunk)
+    with pytest.raises(TableError, match="not a usdfiber-test-chunk file .format is not 'usdfiber-test-chunk'"):
+        read_header(table, container="usdfiber-test-chunk")
+    with pytest.raises(TableError, match="header lacks"):
+        write_table(tmp_path / "t.npz", {"bake_key": "k"}, {"x": np.zeros(1)})
+
+
 def test_missing(tmp_path):
     with pytest.raises(TableError, match="missing"):
         read_table(tmp_path / "nope.npz")

@@ -12,13 +12,13 @@ import pytest
 import usdfiber  # noqa: F401  (registers the schemas before any stage exists)
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
+from usdfiber.spec.yarn import yarn_diameter
 from usdfiber.validation import TimeSelection, selected_times
 from usdfiber.validation import assets, topology
 from usdfiber.validation.problems import CHECKS, Severity
 from usdfiber.validation.topology import (
     check_curves_prim,
     expected_widths_count,
-    nominal_yarn_diameter,
     segment_counts,
     varying_counts,
     vertex_count_rule,
@@ -133,10 +133,10 @@ def test_segment_and_varying_counts_follow_the_usd_docs(curve_type, basis, wrap,
 
 
 def test_nominal_yarn_diameter():
-    assert nominal_yarn_diameter(1, 0.1) == pytest.approx(0.2)
-    assert nominal_yarn_diameter(2, 0.1) == pytest.approx(0.4)  # two touching plies
+    assert yarn_diameter(1, 0.1) == pytest.approx(0.2)
+    assert yarn_diameter(2, 0.1) == pytest.approx(0.4)  # two touching plies
     # Three touching plies: centres at r / sin(60 deg) from the yarn axis.
-    assert nominal_yarn_diameter(3, 1.0) == pytest.approx(2 * (1 + 2 / math.sqrt(3)))
+    assert yarn_diameter(3, 1.0) == pytest.approx(2 * (1 + 2 / math.sqrt(3)))
 
 
 # --------------------------------------------------------------------------------------
@@ -259,8 +259,18 @@ def test_widths_count_mismatch(interp, count, expected):
 
 def test_widths_interpolation_invalid():
     stage = new_stage()
-    prim = add_curves(stage, "/F", [4], widths=[10.0] * 4, interpolation="faceVarying")
+    prim = add_curves(stage, "/F", [4], widths=[10.0] * 4)
+    prim.GetAttribute("widths").SetMetadata("interpolation", "perPixel")
     assert codes(check_curves_prim(prim)) == ["WidthsInterpolationInvalid"]
+
+
+def test_face_varying_widths_are_read_as_varying():
+    # faceVarying is not defined for curves; the renderer reads it as varying (2 values here).
+    stage = new_stage()
+    prim = add_curves(stage, "/F", [4], widths=[10.0] * 2, interpolation="faceVarying")
+    assert codes(check_curves_prim(prim)) == ["WidthsFaceVarying"]
+    prim = add_curves(stage, "/G", [4], widths=[10.0] * 4, interpolation="faceVarying")
+    assert codes(check_curves_prim(prim)) == ["WidthsCountMismatch", "WidthsFaceVarying"]
 
 
 def test_primvars_widths_take_precedence():
@@ -289,9 +299,9 @@ def test_non_finite_points_and_widths():
     prim = add_curves(stage, "/F", [4, 4], points=pts, widths=[10, NAN, 10, -1, 0, 10, 10, 10],
                       interpolation="vertex")
     probs = check_curves_prim(prim)
-    assert codes(probs) == ["PointsNotFinite", "WidthNotPositive", "WidthsNotFinite"]
+    assert codes(probs) == ["PointsNotFinite", "WidthNegative", "WidthsNotFinite"]
     assert "2 points (5, 6)" in only(probs, "PointsNotFinite").message
-    assert "2 widths (3, 4)" in only(probs, "WidthNotPositive").message
+    assert "width 3 has" in only(probs, "WidthNegative").message  # 0 (index 4) is a taper
 
 
 def test_zero_length_curve():
@@ -333,11 +343,11 @@ def test_time_selection_limits_the_samples():
     UsdGeom.Curves(prim).SetWidthsInterpolation("constant")
     attr.Set(Vt.FloatArray([10.0]), 1.0)
     attr.Set(Vt.FloatArray([-1.0]), 5.0)
-    assert codes(check_curves_prim(prim)) == ["WidthNotPositive"]
+    assert codes(check_curves_prim(prim)) == ["WidthNegative"]
     with selected_times(TimeSelection(1.0, 1.0)):
         assert check_curves_prim(prim) == []
     with selected_times(TimeSelection(4.0, 6.0, include_default=False)):
-        assert only(check_curves_prim(prim), "WidthNotPositive").time == 5.0
+        assert only(check_curves_prim(prim), "WidthNegative").time == 5.0
 
 
 def test_default_value_checked_beside_samples_only_when_authored():
@@ -468,7 +478,7 @@ def test_one_prim_with_100k_curves():
     pts[54321 * k:(54321 + 1) * k] = pts[54321 * k]   # zero-length curve 54321
     pts[77777 * k + 2, 1] = NAN                       # NaN in curve 77777
     widths = np.full(n * k, 10.0, np.float32)
-    widths[99999 * k + 5] = 0.0                       # one zero width
+    widths[99999 * k + 5] = -1.0                      # one negative width
     stage = new_stage()
     curves = UsdGeom.BasisCurves.Define(stage, "/Big")
     curves.GetPrim().ApplyAPI("FiberAPI")
@@ -482,10 +492,10 @@ def test_one_prim_with_100k_curves():
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(f"\n100k curves ({n * k} points) in one prim: {elapsed * 1e3:.1f} ms wall, "
           f"{cpu * 1e3:.1f} ms CPU")
-    assert codes(probs) == ["CurveZeroLength", "PointsNotFinite", "WidthNotPositive"]
+    assert codes(probs) == ["CurveZeroLength", "PointsNotFinite", "WidthNegative"]
     assert "curve 54321 " in only(probs, "CurveZeroLength").message
     assert f"point {77777 * k + 2} " in only(probs, "PointsNotFinite").message
-    assert f"width {99999 * k + 5} " in only(probs, "WidthNotPositive").message
+    assert f"width {99999 * k + 5} " in only(probs, "WidthNegative").message
 
     # Topology errors on many curves are summarized in one problem.
     counts = np.full(n, k, np.int32)
@@ -642,7 +652,7 @@ def _write(path, key, inputs=None):
 
 
 def test_table_checks(tmp_path):
-    from usdfiber.fiber_params import FiberParams
+    from usdfiber.spec.fiber import FiberParams
 
     _, prim = _table_stage(tmp_path, "")
     assert assets.check_table_prim(prim) == []  # unset: cache lookup, nothing to check
@@ -674,7 +684,7 @@ def test_table_checks(tmp_path):
 
 
 def test_rewritten_table_is_read_again(tmp_path):
-    from usdfiber.fiber_params import FiberParams
+    from usdfiber.spec.fiber import FiberParams
 
     _, prim = _table_stage(tmp_path, "t.npz")
     _write(tmp_path / "t.npz", "0" * 64)
@@ -704,7 +714,7 @@ def test_corpus_stale_table_is_a_valid_table_for_other_parameters():
     geometry_key that differs from the prim's, if the table format changes)."""
     from pathlib import Path
 
-    from usdfiber.fiber_params import FiberParams
+    from usdfiber.spec.fiber import FiberParams
     from usdfiber.table_format import read_header
 
     corpus = Path(__file__).parent / "corpus"

@@ -13,7 +13,7 @@ from pxr import Gf, Usd, UsdGeom
 
 from usdfiber.backend import mitsuba
 from usdfiber.translators.mitsuba.camera import CameraWarning, camera_sensor, conform_aperture, default_camera
-from usdfiber.translators.mitsuba.render_settings import TranslationError
+from usdfiber.translators.mitsuba.errors import TranslationError
 
 mi = mitsuba()
 _STAGES: list[Usd.Stage] = []   # prims do not keep their stage alive

@@ -11,8 +11,9 @@ import usdfiber  # noqa: F401  (registers plugins before any stage is opened)
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from usdfiber.backend import mitsuba
-from usdfiber.translators.mitsuba.lights import blackbody_rgb, default_light, light_emitter
-from usdfiber.translators.mitsuba.render_settings import TranslationError
+from usdfiber.colour import blackbody_rgb
+from usdfiber.translators.mitsuba.lights import default_light, light_emitter
+from usdfiber.translators.mitsuba.errors import TranslationError
 
 mi = mitsuba()
 I4 = np.eye(4)
@@ -167,6 +168,8 @@ def test_sphere_area_light_irradiance_matches_point_equivalent():
     sph.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))
     entry, _ = light_emitter(sph.GetPrim(), _xf(sph), 0)
     img = _render([entry], (0, 0, 0.5), (0, 0, 0), fov=1.0, res=4, spp=256, plane=True)
+    # Relative standard error of the image mean 0.02 % (20 seeds, measured): 3 % bounds bias,
+    # noise cannot reach it (false failure far below 1e-4).
     assert float(img.mean()) == pytest.approx(4.0 * 0.25 ** 2, rel=0.03)
 
 
@@ -288,6 +291,8 @@ def test_dome_radiance_constant_and_textured(tmp_path):
     assert entry["type"] == "constant"
     # white Lambertian plane under a uniform dome: radiance = dome radiance
     img = _render([entry], (0, 0, 5), (0, 0, 0), plane=True, spp=64)
+    # Relative standard error of the mean 0.36 % (20 seeds, measured): 3 % is 8 standard
+    # errors (false failure 1e-16).
     assert np.allclose(img.mean(axis=(0, 1)), [2.0, 1.0, 0.5], rtol=0.03)
     # 8-bit PNG: sRGB-decoded (auto), times intensity and colour; seen directly
     _write(tmp_path / "grey.png", np.full((8, 16, 3), 128, np.uint8), fmt=__import__("OpenImageIO").UINT8)
@@ -347,7 +352,9 @@ def test_default_light():
     scene = {"type": "rectangle",
              "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale([10, 10, 1]),
              "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1, 1, 1]}}}
-    img = _render(lights + [scene], (0, 5, 0), (0, 0, 0), up=(0, 0, -1), spp=64)
+    img = _render(lights + [scene], (0, 5, 0), (0, 0, 0), up=(0, 0, -1), spp=1024)
+    # Relative standard error of the mean 0.9 % at 64 spp (20 seeds, measured): 3 % was 3.3
+    # standard errors (false failure 1e-3). At 1024 spp it is 0.23 %: 13 standard errors.
     assert float(img.mean()) == pytest.approx(0.5 + 2.0 / 3.0, rel=0.03)
     z_up = default_light(np.zeros(3), np.ones(3), up_axis="Z")
     assert z_up[1]["direction"][2] < 0 and z_up[1]["direction"][1] > 0

@@ -9,7 +9,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
 
 from usdfiber.backend import mitsuba
 from usdfiber.translators.mitsuba.meshes import material_bsdf, mesh_shape, mesh_shapes
-from usdfiber.translators.mitsuba.render_settings import TranslationError
+from usdfiber.translators.mitsuba.errors import TranslationError
 
 mi = mitsuba()
 I4 = np.eye(4)

@@ -23,65 +23,69 @@ from typing import Any, Iterable, Mapping, Sequence
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from usdfiber import presets as _presets
+from usdfiber.errors import PrimError
+from usdfiber.spec.attributes import Fiber, Interval, Profile, Yarn, attribute
+from usdfiber.spec.yarn import yarn_diameter
 
 
-class AuthoringError(ValueError):
-    """Invalid authoring request; the message names the prim."""
+class AuthoringError(PrimError):
+    """An invalid authoring request (a :class:`~usdfiber.errors.PrimError`: file, prim,
+    attribute and what was expected)."""
 
 
 # Python name -> schema attribute.
 FIBER_NAMES: dict[str, str] = {
-    "kind": "fiber:kind",
-    "profile": "fiber:profile",
-    "variant_count": "fiber:profile:variantCount",
-    "diameter": "fiber:diameter",
-    "density": "fiber:density",
-    "ior_parallel": "fiber:ior:parallel",
-    "ior_perpendicular": "fiber:ior:perpendicular",
-    "ior_effective": "fiber:ior:effective",
-    "roughness_source": "fiber:roughness:source",
-    "ra": "fiber:roughness:ra",
-    "profile_length": "fiber:roughness:profileLength",
-    "beta": "fiber:roughness:beta",
-    "cuticle_tilt": "fiber:cuticle:tilt",
-    "cuticle_height": "fiber:cuticle:height",
-    "cuticle_spacing": "fiber:cuticle:spacing",
-    "dye_class": "fiber:dye:class",
-    "extinction_source": "fiber:dye:extinctionSource",
-    "extinction": "fiber:dye:extinction",
-    "molar_extinction": "fiber:dye:molarExtinction",
-    "molar_mass": "fiber:dye:molarMass",
-    "spectrum_wavelengths": "fiber:dye:spectrum:wavelengths",
-    "spectrum_values": "fiber:dye:spectrum:values",
-    "depth_of_shade": "fiber:dye:depthOfShade",
-    "random_rotation": "fiber:rotation:random",
-    "rotation": "fiber:rotation",
-    "seed": "fiber:seed",
-    "table": "fiber:table",
+    "kind": Fiber.KIND,
+    "profile": Fiber.PROFILE,
+    "variant_count": Fiber.PROFILE_VARIANT_COUNT,
+    "diameter": Fiber.DIAMETER,
+    "density": Fiber.DENSITY,
+    "ior_parallel": Fiber.IOR_PARALLEL,
+    "ior_perpendicular": Fiber.IOR_PERPENDICULAR,
+    "ior_effective": Fiber.IOR_EFFECTIVE,
+    "roughness_source": Fiber.ROUGHNESS_SOURCE,
+    "ra": Fiber.ROUGHNESS_RA,
+    "profile_length": Fiber.ROUGHNESS_PROFILE_LENGTH,
+    "beta": Fiber.ROUGHNESS_BETA,
+    "cuticle_tilt": Fiber.CUTICLE_TILT,
+    "cuticle_height": Fiber.CUTICLE_HEIGHT,
+    "cuticle_spacing": Fiber.CUTICLE_SPACING,
+    "dye_class": Fiber.DYE_CLASS,
+    "extinction_source": Fiber.DYE_EXTINCTION_SOURCE,
+    "extinction": Fiber.DYE_EXTINCTION,
+    "molar_extinction": Fiber.DYE_MOLAR_EXTINCTION,
+    "molar_mass": Fiber.DYE_MOLAR_MASS,
+    "spectrum_wavelengths": Fiber.DYE_SPECTRUM_WAVELENGTHS,
+    "spectrum_values": Fiber.DYE_SPECTRUM_VALUES,
+    "depth_of_shade": Fiber.DYE_DEPTH_OF_SHADE,
+    "random_rotation": Fiber.ROTATION_RANDOM,
+    "rotation": Fiber.ROTATION,
+    "seed": Fiber.SEED,
+    "table": Fiber.TABLE,
 }
 # Names that are not one attribute.
 FIBER_SPECIAL = ("dye", "ior", "profile_sources")
 
 YARN_NAMES: dict[str, str] = {
-    "plies": "yarn:plies",
-    "fibers_per_ply": "yarn:fibersPerPly",
-    "linear_density": "yarn:ply:linearDensity",
-    "staple_length": "yarn:fiber:stapleLength",
-    "ply_twist": "yarn:ply:twist",
-    "ply_twist_direction": "yarn:ply:twistDirection",
-    "fiber_twist": "yarn:fiber:twist",
-    "fiber_twist_direction": "yarn:fiber:twistDirection",
-    "ply_radius": "yarn:ply:radius",
-    "ply_compression": "yarn:ply:compression",
-    "migration": "yarn:fiber:migration",
-    "migration_period": "yarn:fiber:migrationPeriod",
-    "density_profile": "yarn:fiber:densityProfile",
-    "hair_density": "yarn:flyaway:hairDensity",
-    "hair_length": "yarn:flyaway:hairLength",
-    "loop_density": "yarn:flyaway:loopDensity",
-    "loop_height": "yarn:flyaway:loopHeight",
-    "seed": "yarn:seed",
-    "expand_fibers": "yarn:expandFibers",
+    "plies": Yarn.PLIES,
+    "fibers_per_ply": Yarn.FIBERS_PER_PLY,
+    "linear_density": Yarn.PLY_LINEAR_DENSITY,
+    "staple_length": Yarn.FIBER_STAPLE_LENGTH,
+    "ply_twist": Yarn.PLY_TWIST,
+    "ply_twist_direction": Yarn.PLY_TWIST_DIRECTION,
+    "fiber_twist": Yarn.FIBER_TWIST,
+    "fiber_twist_direction": Yarn.FIBER_TWIST_DIRECTION,
+    "ply_radius": Yarn.PLY_RADIUS,
+    "ply_compression": Yarn.PLY_COMPRESSION,
+    "migration": Yarn.FIBER_MIGRATION,
+    "migration_period": Yarn.FIBER_MIGRATION_PERIOD,
+    "density_profile": Yarn.FIBER_DENSITY_PROFILE,
+    "hair_density": Yarn.FLYAWAY_HAIR_DENSITY,
+    "hair_length": Yarn.FLYAWAY_HAIR_LENGTH,
+    "loop_density": Yarn.FLYAWAY_LOOP_DENSITY,
+    "loop_height": Yarn.FLYAWAY_LOOP_HEIGHT,
+    "seed": Yarn.SEED,
+    "expand_fibers": Yarn.EXPAND_FIBERS,
 }
 
 DOS_VARIANT_SET = "depthOfShade"
@@ -95,10 +99,11 @@ def _prim_desc(prim: Usd.Prim) -> str:
 def _attr_def(api: str, name: str):
     d = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(api)
     if d is None:
-        raise AuthoringError(f"{api} is not registered with USD (import usdfiber before opening stages)")
+        raise AuthoringError(None, None, None,
+                             f"{api} is not registered with USD (import usdfiber before opening stages)")
     a = d.GetAttributeDefinition(name)
     if not a:
-        raise AuthoringError(f"{api} has no attribute {name}")
+        raise AuthoringError(None, None, name, f"is not an attribute of {api}")
     return a
 
 
@@ -109,13 +114,13 @@ def _convert(prim: Usd.Prim, name: str, type_name: Sdf.ValueTypeName, allowed, v
         if t == "token":
             v = str(value)
             if allowed and v not in allowed:
-                raise AuthoringError(
-                    f"{_prim_desc(prim)}: {name}: {v!r} is not one of {', '.join(map(str, allowed))}")
+                raise AuthoringError.at(prim, name,
+                                        f"{v!r} is not one of {', '.join(map(str, allowed))}")
             return v
         if t == "float":
             v = float(value)
             if not math.isfinite(v):
-                raise AuthoringError(f"{_prim_desc(prim)}: {name}: {v} is not finite")
+                raise AuthoringError.at(prim, name, f"{v} is not finite")
             return v
         if t == "int":
             if isinstance(value, bool) or int(value) != value:
@@ -142,8 +147,36 @@ def _convert(prim: Usd.Prim, name: str, type_name: Sdf.ValueTypeName, allowed, v
     except AuthoringError:
         raise
     except (TypeError, ValueError) as exc:
-        raise AuthoringError(f"{_prim_desc(prim)}: {name}: cannot use {value!r} as {t}") from exc
-    raise AuthoringError(f"{_prim_desc(prim)}: {name}: unsupported type {t}")
+        raise AuthoringError.at(prim, name, f"cannot use {value!r} as {t}") from exc
+    raise AuthoringError.at(prim, name, f"unsupported type {t}")
+
+
+def _in_range(prim: Usd.Prim, name: str, value: Any) -> Any:
+    """``value`` if it lies in the schema's valid range of ``name`` (the validators' rule,
+    :mod:`usdfiber.spec.attributes`; each component of a vector, each element of an array),
+    else AuthoringError saying the range."""
+    try:
+        spec = attribute(name)
+    except KeyError:
+        return value
+    if spec.valid is None and spec.component_valid is None:
+        return value
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        comps = [float(value)]
+    elif isinstance(value, (Gf.Vec2f, Gf.Vec3f)):
+        comps = [float(c) for c in value]
+    elif isinstance(value, (Vt.FloatArray, Vt.IntArray)):
+        comps = [float(c) for c in value]
+    else:
+        return value
+    ranges = (spec.component_ranges(len(comps)) if isinstance(value, (Gf.Vec2f, Gf.Vec3f))
+              else tuple(spec.valid or Interval() for _ in comps))
+    unit = f" {spec.unit}" if spec.unit and spec.unit != "1" else ""
+    for i, (c, rng) in enumerate(zip(comps, ranges)):
+        if c not in rng:
+            where = "" if len(comps) == 1 else f" (component {i})"
+            raise AuthoringError.at(prim, name, f"{value!r}{where} is out of range; expected a value in {rng}{unit}")
+    return value
 
 
 def _converted(prim: Usd.Prim, api: str, name: str, value: Any):
@@ -153,14 +186,15 @@ def _converted(prim: Usd.Prim, api: str, name: str, value: Any):
     allowed = a.GetMetadata("allowedTokens")
     if isinstance(value, Mapping):
         if a.GetVariability() == Sdf.VariabilityUniform:
-            raise AuthoringError(f"{_prim_desc(prim)}: {name} is uniform and cannot be time-sampled")
+            raise AuthoringError.at(prim, name, "is uniform and cannot be time-sampled")
         try:
-            return a, {float(t): _convert(prim, name, type_name, allowed, v) for t, v in value.items()}
+            return a, {float(t): _in_range(prim, name, _convert(prim, name, type_name, allowed, v))
+                       for t, v in value.items()}
         except (TypeError, ValueError) as exc:
             if isinstance(exc, AuthoringError):
                 raise
-            raise AuthoringError(f"{_prim_desc(prim)}: {name}: time codes must be numbers") from exc
-    return a, _convert(prim, name, type_name, allowed, value)
+            raise AuthoringError.at(prim, name, "time codes must be numbers") from exc
+    return a, _in_range(prim, name, _convert(prim, name, type_name, allowed, value))
 
 
 def _set(prim: Usd.Prim, api: str, name: str, value: Any) -> None:
@@ -177,13 +211,13 @@ def _set(prim: Usd.Prim, api: str, name: str, value: Any) -> None:
 def _author_all(prim: Usd.Prim, api: str, values: Mapping[str, Any]) -> None:
     """Validate every value first, then apply ``api`` and author them (no half-done prims)."""
     for name, value in values.items():
-        if name == "fiber:profile:sources":
+        if name == Fiber.PROFILE_SOURCES:
             _check_targets(prim, value)
         else:
             _converted(prim, api, name, value)
     prim.ApplyAPI(api)
     for name, value in values.items():
-        if name == "fiber:profile:sources":
+        if name == Fiber.PROFILE_SOURCES:
             prim.CreateRelationship(name, False).SetTargets(_check_targets(prim, value))
         else:
             _set(prim, api, name, value)
@@ -191,18 +225,17 @@ def _author_all(prim: Usd.Prim, api: str, values: Mapping[str, Any]) -> None:
 
 def _check_curves(prim: Usd.Prim, api: str) -> None:
     if not prim or not prim.IsValid():
-        raise AuthoringError(f"cannot apply {api}: {_prim_desc(prim)} is not a valid prim")
+        raise AuthoringError(None, _prim_desc(prim), None, f"cannot apply {api}: not a valid prim")
     if not prim.IsA(UsdGeom.BasisCurves):
         type_name = prim.GetTypeName() or "untyped"
-        raise AuthoringError(
-            f"cannot apply {api} to {prim.GetPath()}: it is a {type_name} prim, "
-            f"{api} applies to BasisCurves only")
+        raise AuthoringError.at(
+            prim, None, f"cannot apply {api}: it is a {type_name} prim, {api} applies to "
+                        f"BasisCurves only")
 
 
 def _unknown(prim: Usd.Prim, bad: Iterable[str], valid: Iterable[str]) -> AuthoringError:
-    return AuthoringError(
-        f"{_prim_desc(prim)}: unknown parameter(s) {', '.join(sorted(bad))}; "
-        f"valid: {', '.join(sorted(valid))}")
+    return AuthoringError.at(prim, None, f"unknown parameter(s) {', '.join(sorted(bad))}; "
+                                         f"valid: {', '.join(sorted(valid))}")
 
 
 # -------------------------------------------------------------------- fibers
@@ -213,7 +246,7 @@ def apply_fiber(prim: Usd.Prim, preset: str | None = "cotton", **overrides: Any)
     colour of :mod:`usdfiber.presets` (sets class, extinction source and extinction).
     Raises AuthoringError for non-curves prims, unknown names or invalid values.
     """
-    _check_curves(prim, "FiberAPI")
+    _check_curves(prim, Fiber.API)
     valid = set(FIBER_NAMES) | set(FIBER_SPECIAL)
     bad = set(overrides) - valid
     if bad:
@@ -223,9 +256,9 @@ def apply_fiber(prim: Usd.Prim, preset: str | None = "cotton", **overrides: Any)
         try:
             values.update(_presets.fiber_preset(preset).fiber_attributes())
         except KeyError as exc:
-            raise AuthoringError(f"{_prim_desc(prim)}: {exc.args[0]}") from None
+            raise AuthoringError.at(prim, None, exc.args[0]) from None
     values.update(_fiber_override_values(prim, overrides))
-    _author_all(prim, "FiberAPI", values)
+    _author_all(prim, Fiber.API, values)
     return prim
 
 
@@ -238,30 +271,30 @@ def _fiber_override_values(prim: Usd.Prim, ov: dict[str, Any]) -> dict[str, Any]
             dye_class, ext = _presets.dye_values(name)
         except KeyError:
             valid = list(_presets.DYE_PRESETS) + list(_presets.DYE_COLOURS)
-            raise AuthoringError(
-                f"{_prim_desc(prim)}: unknown dye {name!r}; valid: {', '.join(valid)}") from None
-        out.update({"fiber:dye:class": dye_class, "fiber:dye:extinctionSource": "perGram",
-                    "fiber:dye:extinction": ext})
+            raise AuthoringError.at(prim, None,
+                                    f"unknown dye {name!r}; valid: {', '.join(valid)}") from None
+        out.update({Fiber.DYE_CLASS: dye_class, Fiber.DYE_EXTINCTION_SOURCE: "perGram",
+                    Fiber.DYE_EXTINCTION: ext})
     if "ior" in ov:
         if "ior_parallel" in ov or "ior_perpendicular" in ov:
-            raise AuthoringError(f"{_prim_desc(prim)}: give either ior or ior_parallel/ior_perpendicular")
+            raise AuthoringError.at(prim, None, "give either ior or ior_parallel/ior_perpendicular")
         ior = ov.pop("ior")
-        out["fiber:ior:parallel"] = ior
-        out["fiber:ior:perpendicular"] = ior
+        out[Fiber.IOR_PARALLEL] = ior
+        out[Fiber.IOR_PERPENDICULAR] = ior
     if "profile_sources" in ov:
-        out["fiber:profile:sources"] = ov.pop("profile_sources")
+        out[Fiber.PROFILE_SOURCES] = ov.pop("profile_sources")
         if "profile" not in ov:
-            out["fiber:profile"] = "user"
+            out[Fiber.PROFILE] = "user"
     # Roughness: the values given decide which source applies, unless it is given.
     if "roughness_source" not in ov:
         by_ra = "ra" in ov or "profile_length" in ov
         if by_ra and "beta" in ov:
-            raise AuthoringError(
-                f"{_prim_desc(prim)}: both Ra/l and beta given; pass roughness_source='ra' or 'beta'")
+            raise AuthoringError.at(prim, None, "both Ra/l and beta given; pass "
+                                                "roughness_source='ra' or 'beta'")
         if by_ra:
-            out["fiber:roughness:source"] = "ra"
+            out[Fiber.ROUGHNESS_SOURCE] = "ra"
         elif "beta" in ov:
-            out["fiber:roughness:source"] = "beta"
+            out[Fiber.ROUGHNESS_SOURCE] = "beta"
     # Extinction: the values given decide the source, unless it is given.
     src = None
     if "extinction" in ov:
@@ -271,14 +304,14 @@ def _fiber_override_values(prim: Usd.Prim, ov: dict[str, Any]) -> dict[str, Any]
     if "spectrum_wavelengths" in ov or "spectrum_values" in ov:
         src = "spectrum" if src is None else "ambiguous"
     if src == "ambiguous" and "extinction_source" not in ov:
-        raise AuthoringError(f"{_prim_desc(prim)}: extinction given several ways; pass extinction_source")
+        raise AuthoringError.at(prim, None, "extinction given several ways; pass extinction_source")
     if src and src != "ambiguous" and "extinction_source" not in ov:
-        out["fiber:dye:extinctionSource"] = src
-    if src and "dye_class" not in ov and "fiber:dye:class" not in out:
+        out[Fiber.DYE_EXTINCTION_SOURCE] = src
+    if src and "dye_class" not in ov and Fiber.DYE_CLASS not in out:
         # An extinction on an undyed fiber would be ignored: make the dye "custom".
-        current = prim.GetAttribute("fiber:dye:class")
+        current = prim.GetAttribute(Fiber.DYE_CLASS)
         if (current.Get() if current else None) in (None, "none"):
-            out["fiber:dye:class"] = "custom"
+            out[Fiber.DYE_CLASS] = "custom"
     for k, v in ov.items():
         out[FIBER_NAMES[k]] = v
     return out
@@ -292,24 +325,23 @@ def _check_targets(prim: Usd.Prim, paths: Sequence[str | Sdf.Path]) -> list[Sdf.
     for p in paths:
         sp = Sdf.Path(str(p))
         if not sp.IsAbsolutePath():
-            raise AuthoringError(f"{_prim_desc(prim)}: profile source {p} must be an absolute path")
+            raise AuthoringError.at(prim, None, f"profile source {p} must be an absolute path")
         tp = stage.GetPrimAtPath(sp)
-        if not tp or not tp.HasAPI("FiberProfileAPI"):
-            raise AuthoringError(
-                f"{_prim_desc(prim)}: profile source {sp} is not a prim with FiberProfileAPI "
-                f"(create it with define_profile)")
+        if not tp or not tp.HasAPI(Profile.API):
+            raise AuthoringError.at(prim, None, f"profile source {sp} is not a prim with "
+                                                f"FiberProfileAPI (create it with define_profile)")
         targets.append(sp)
     if not targets:
-        raise AuthoringError(f"{_prim_desc(prim)}: profile sources must name at least one profile prim")
+        raise AuthoringError.at(prim, None, "profile sources must name at least one profile prim")
     return targets
 
 
 def set_profile_sources(prim: Usd.Prim, paths: Sequence[str | Sdf.Path]) -> None:
     """Target FiberProfileAPI prims from ``fiber:profile:sources`` and set profile "user"."""
-    if not prim or not prim.HasAPI("FiberAPI"):
-        raise AuthoringError(f"{_prim_desc(prim)}: has no FiberAPI; call apply_fiber first")
-    prim.CreateRelationship("fiber:profile:sources", False).SetTargets(_check_targets(prim, paths))
-    _set(prim, "FiberAPI", "fiber:profile", "user")
+    if not prim or not prim.HasAPI(Fiber.API):
+        raise AuthoringError.at(prim, None, "has no FiberAPI; call apply_fiber first")
+    prim.CreateRelationship(Fiber.PROFILE_SOURCES, False).SetTargets(_check_targets(prim, paths))
+    _set(prim, Fiber.API, Fiber.PROFILE, "user")
 
 
 def define_profile(stage: Usd.Stage, path: str | Sdf.Path,
@@ -326,17 +358,17 @@ def define_profile(stage: Usd.Stage, path: str | Sdf.Path,
         if len(pts) > 1 and pts[0] == pts[-1]:
             pts = pts[:-1]
         if len(pts) < 3:
-            raise AuthoringError(f"{prim.GetPath()}: loop {i} has {len(pts)} points; at least 3 needed")
+            raise AuthoringError.at(prim, None, f"loop {i} has {len(pts)} points; at least 3 needed")
         if not all(math.isfinite(c) for p in pts for c in p):
-            raise AuthoringError(f"{prim.GetPath()}: loop {i} has non-finite coordinates")
+            raise AuthoringError.at(prim, None, f"loop {i} has non-finite coordinates")
         points.extend(pts)
         counts.append(len(pts))
     if not counts:
-        raise AuthoringError(f"{prim.GetPath()}: a profile needs at least one loop")
-    prim.ApplyAPI("FiberProfileAPI")
-    _set(prim, "FiberProfileAPI", "fiberProfile:points", points)
-    _set(prim, "FiberProfileAPI", "fiberProfile:loopVertexCounts", counts)
-    _set(prim, "FiberProfileAPI", "fiberProfile:smooth", bool(smooth))
+        raise AuthoringError.at(prim, None, "a profile needs at least one loop")
+    prim.ApplyAPI(Profile.API)
+    _set(prim, Profile.API, Profile.POINTS, points)
+    _set(prim, Profile.API, Profile.LOOP_VERTEX_COUNTS, counts)
+    _set(prim, Profile.API, Profile.SMOOTH, bool(smooth))
     return prim
 
 
@@ -360,9 +392,9 @@ def inherit(prim: Usd.Prim, class_path: str | Sdf.Path) -> Usd.Prim:
     """Make ``prim`` inherit the class at ``class_path`` (which must exist on the stage)."""
     cp = Sdf.Path(str(class_path))
     if not prim or not prim.IsValid():
-        raise AuthoringError(f"cannot inherit {cp}: {_prim_desc(prim)} is not a valid prim")
+        raise AuthoringError(None, _prim_desc(prim), None, f"cannot inherit {cp}: not a valid prim")
     if not prim.GetStage().GetPrimAtPath(cp):
-        raise AuthoringError(f"{prim.GetPath()}: cannot inherit {cp}: no prim there")
+        raise AuthoringError.at(prim, None, f"cannot inherit {cp}: no prim there")
     prim.GetInherits().AddInherit(cp)
     return prim
 
@@ -375,25 +407,30 @@ def add_depth_of_shade_variants(prim: Usd.Prim, shades: Mapping[str, float | Map
     A local opinion on the depth of shade in the edit target is stronger than any variant,
     so it is removed from the edit target's layer here (its value would hide the variants).
     """
-    if not prim or not prim.HasAPI("FiberAPI"):
-        raise AuthoringError(f"{_prim_desc(prim)}: has no FiberAPI; apply it (or define the class) first")
+    if not prim or not prim.HasAPI(Fiber.API):
+        raise AuthoringError.at(prim, None, "has no FiberAPI; apply it (or define the class) first")
     if not shades:
-        raise AuthoringError(f"{prim.GetPath()}: no shades given")
+        raise AuthoringError.at(prim, None, "no shades given")
     if default is not None and default not in shades:
-        raise AuthoringError(f"{prim.GetPath()}: default variant {default!r} not in {list(shades)}")
-    name = "fiber:dye:depthOfShade"
+        raise AuthoringError.at(prim, None, f"default variant {default!r} not in {list(shades)}")
+    name = Fiber.DYE_DEPTH_OF_SHADE
     attr = prim.GetAttribute(name)
     spec = prim.GetStage().GetEditTarget().GetPropertySpecForScenePath(attr.GetPath())
     if spec is not None:
         prim.RemoveProperty(name)
+    for value in shades.values():  # every value checked before anything is authored
+        _converted(prim, Fiber.API, name, value)
     vset = prim.GetVariantSets().AddVariantSet(set_name)
+    kept = vset.GetVariantSelection()  # a selection made before (by an earlier call) stays
     for variant, value in shades.items():
         vset.AddVariant(variant)
         vset.SetVariantSelection(variant)
         with vset.GetVariantEditContext():
-            _set(prim, "FiberAPI", name, value)
+            _set(prim, Fiber.API, name, value)
     if default is not None:
         vset.SetVariantSelection(default)
+    elif kept:
+        vset.SetVariantSelection(kept)
     else:
         vset.ClearVariantSelection()
     return vset
@@ -409,7 +446,7 @@ def apply_yarn(prim: Usd.Prim, preset: str | None = "CNe 50", fiber_preset: str 
     is the yarn seed) or fiber names (:data:`FIBER_NAMES`, ``fiber_seed`` for the fiber seed).
     ``packing_fraction`` re-derives the ply radius from the linear density.
     """
-    _check_curves(prim, "FiberYarnAPI")
+    _check_curves(prim, Yarn.API)
     fiber_names = (set(FIBER_NAMES) - {"seed"}) | set(FIBER_SPECIAL) | {"fiber_seed"}
     valid = set(YARN_NAMES) | fiber_names | {"packing_fraction"}
     bad = set(overrides) - valid
@@ -420,7 +457,7 @@ def apply_yarn(prim: Usd.Prim, preset: str | None = "CNe 50", fiber_preset: str 
         try:
             yp = _presets.yarn_preset(preset)
         except KeyError as exc:
-            raise AuthoringError(f"{_prim_desc(prim)}: {exc.args[0]}") from None
+            raise AuthoringError.at(prim, None, exc.args[0]) from None
     fiber_ov = {k: v for k, v in overrides.items() if k in fiber_names}
     if "fiber_seed" in fiber_ov:
         fiber_ov["seed"] = fiber_ov.pop("fiber_seed")
@@ -430,7 +467,7 @@ def apply_yarn(prim: Usd.Prim, preset: str | None = "CNe 50", fiber_preset: str 
     if (yp is not None and (fp != yp.fiber_preset or "density" in fiber_ov)
             and "ply_radius" not in overrides):
         # Another fiber has another density: the same dtex fills another ply radius.
-        values["yarn:ply:radius"] = _presets.ply_radius_mm(
+        values[Yarn.PLY_RADIUS] = _presets.ply_radius_mm(
             yp.published.dtex, _fiber_density(prim, fp, fiber_ov))
     for k, v in overrides.items():
         if k in YARN_NAMES:
@@ -441,15 +478,15 @@ def apply_yarn(prim: Usd.Prim, preset: str | None = "CNe 50", fiber_preset: str 
         except (TypeError, ValueError):
             pf = float("nan")
         if not 0 < pf <= 1:
-            raise AuthoringError(f"{prim.GetPath()}: packing_fraction must be in (0, 1], got {overrides['packing_fraction']!r}")
-        dtex = float(values.get("yarn:ply:linearDensity", 0.0))
+            raise AuthoringError.at(prim, None, f"packing_fraction must be in (0, 1], got {overrides['packing_fraction']!r}")
+        dtex = float(values.get(Yarn.PLY_LINEAR_DENSITY, 0.0))
         if dtex <= 0:
-            raise AuthoringError(f"{prim.GetPath()}: packing_fraction needs a linear density (dtex)")
-        values["yarn:ply:radius"] = _presets.ply_radius_mm(dtex, _fiber_density(prim, fp, fiber_ov), pf)
+            raise AuthoringError.at(prim, None, "packing_fraction needs a linear density (dtex)")
+        values[Yarn.PLY_RADIUS] = _presets.ply_radius_mm(dtex, _fiber_density(prim, fp, fiber_ov), pf)
     for name, value in values.items():  # validate before authoring anything
-        _converted(prim, "FiberYarnAPI", name, value)
+        _converted(prim, Yarn.API, name, value)
     apply_fiber(prim, fp, **fiber_ov)
-    _author_all(prim, "FiberYarnAPI", values)
+    _author_all(prim, Yarn.API, values)
     return prim
 
 
@@ -461,17 +498,17 @@ def _fiber_density(prim: Usd.Prim, fiber_preset: str | None, fiber_ov: Mapping[s
         try:
             return _presets.fiber_preset(fiber_preset).density_g_cm3
         except KeyError as exc:
-            raise AuthoringError(f"{_prim_desc(prim)}: {exc.args[0]}") from None
-    attr = prim.GetAttribute("fiber:density")
+            raise AuthoringError.at(prim, None, exc.args[0]) from None
+    attr = prim.GetAttribute(Fiber.DENSITY)
     value = attr.Get() if attr else None
-    return float(value if value is not None else _attr_def("FiberAPI", "fiber:density").GetFallbackValue())
+    return float(value if value is not None else _attr_def(Fiber.API, Fiber.DENSITY).GetFallbackValue())
 
 
 def yarn_diameter_mm(prim: Usd.Prim) -> float:
     """Diameter in mm of the yarn authored on ``prim`` (touching circular plies)."""
-    plies = int(prim.GetAttribute("yarn:plies").Get())
-    radius = float(prim.GetAttribute("yarn:ply:radius").Get())
-    return _presets.yarn_diameter_mm(plies, radius)
+    plies = int(prim.GetAttribute(Yarn.PLIES).Get())
+    radius = float(prim.GetAttribute(Yarn.PLY_RADIUS).Get())
+    return yarn_diameter(plies, radius)
 
 
 __all__ = [

@@ -41,10 +41,15 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from usdfiber.bake.baker import (BakeError, BakeSettings, ProgressFn, TableRequest, requests_for_params,
-                                 resolve_table_asset)
+from pxr import Usd
+
+from usdfiber.bake.baker import ProgressFn
 from usdfiber.bake.cache import TableCache, TableCacheWarning, default_cache_dir
-from usdfiber.bake.table import BcsdfTable, Recoloured, TableLayoutError
+from usdfiber.bake.requests import requests_for_params, requests_for_prim, resolve_table_asset
+from usdfiber.bake.settings import BakeError, BakeSettings
+from usdfiber.bake.storage import TableLayoutError
+from usdfiber.bake.table import BcsdfTable, Recoloured
+from usdfiber.spec.fiber import FiberParams, FiberParamsError
 from usdfiber.table_format import TableError
 
 __all__ = [
@@ -73,19 +78,6 @@ def load_table(path: str | os.PathLike[str]) -> BcsdfTable:
     return BcsdfTable.load(Path(path))
 
 
-def requests_for_prim(prim: Any, time: Any = None) -> list[TableRequest]:
-    """The tables (one per cross-section variant) a fiber prim uses, from its parameters."""
-    from pxr import Usd
-
-    from usdfiber.fiber_params import FiberParams, FiberParamsError
-
-    try:
-        params = FiberParams.from_prim(prim, Usd.TimeCode.Default() if time is None else time)
-    except FiberParamsError as exc:
-        raise BakeError(str(exc)) from None
-    return requests_for_params(params, str(prim.GetPath()))
-
-
 def tables_for_prim(prim: Any, settings: BakeSettings | None = None, bake_missing: bool = True, *,
                     cache: TableCache | None = None, time: Any = None,
                     progress: ProgressFn | None = None) -> list[BcsdfTable]:
@@ -97,10 +89,6 @@ def tables_for_prim(prim: Any, settings: BakeSettings | None = None, bake_missin
     ``bake_missing=False`` a missing table raises MissingTableError. A damaged, missing or
     stale ``fiber:table`` is warned about and replaced by the cache's tables.
     """
-    from pxr import Usd
-
-    from usdfiber.fiber_params import FiberParams, FiberParamsError
-
     try:
         params = FiberParams.from_prim(prim, Usd.TimeCode.Default() if time is None else time)
     except FiberParamsError as exc:

@@ -63,6 +63,7 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 
 from usdfiber import authoring
 from usdfiber import presets as _presets
+from usdfiber.memory_budget import MemoryBudget
 
 __all__ = ["ClothError", "KNIT_A", "KNIT_D", "KNIT_H", "KNIT_ROW_SPACING", "garter",
            "min_distance_between", "plain_weave", "satin", "satin_step", "stockinette",
@@ -158,6 +159,17 @@ def _check_clearance(value: Any) -> float:
     return v
 
 
+#: Peak bytes per yarn control point while a cloth is generated and authored (NumPy model and
+#: scene coordinates, USD's arrays and layer, the written file's text), rounded up.
+BYTES_PER_CONTROL_POINT = 256
+
+
+def _check_budget(what: str, control_points: int, budget: MemoryBudget | None) -> None:
+    """Refuse, before any allocation, a cloth whose control points do not fit the budget."""
+    (budget or MemoryBudget.resolve()).require(control_points * BYTES_PER_CONTROL_POINT,
+                                               f"{what} ({control_points} control points)")
+
+
 def _check_presets(yarn: str, fiber: str | None) -> None:
     try:
         _presets.yarn_preset(yarn)
@@ -220,10 +232,7 @@ def _author(stage: Usd.Stage, path: str | Sdf.Path, build: Callable[[float], lis
             curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
             curves.CreateExtentAttr(UsdGeom.Curves.ComputeExtent(curves.GetPointsAttr().Get(), widths))
             authoring.apply_yarn(curves.GetPrim(), yarn, fiber, **overrides)
-    except authoring.AuthoringError as exc:
-        _undo(stage, root_path, existed)
-        raise ClothError(str(exc)) from None
-    except BaseException:
+    except BaseException:  # an AuthoringError (a PrimError) reaches the caller as it is
         _undo(stage, root_path, existed)
         raise
     return root.GetPrim()
@@ -289,13 +298,14 @@ def _knit_contact_distance(pattern: str, n: int) -> float:
 def _knit(stage: Usd.Stage, path: str | Sdf.Path, pattern: str, *, rows: int, loops: int,
           yarn: str, fiber: str | None, spacing_scale: float, loop_size: float,
           dye: str | None, depth_of_shade: float | None, samples_per_loop: int,
-          min_clearance: float) -> Usd.Prim:
+          min_clearance: float, memory_budget: MemoryBudget | None = None) -> Usd.Prim:
     rows = _check_int("rows", rows, 1)
     loops = _check_int("loops", loops, 1)
     n = _check_int("samples_per_loop", samples_per_loop, 4)
     spacing_scale = _check_pos("spacing_scale", spacing_scale)
     loop_size = _check_pos("loop_size", loop_size)
     min_clearance = _check_clearance(min_clearance)
+    _check_budget(f"cloth {pattern} of {rows} rows x {loops} loops", rows * (n * loops + 3), memory_budget)
 
     def build(diameter: float) -> list[_Yarns]:
         unit = diameter / _knit_contact_distance(pattern, n)  # mm per model unit
@@ -320,25 +330,29 @@ def stockinette(stage: Usd.Stage, path: str | Sdf.Path, *, rows: int = 8, loops:
                 yarn: str = DEFAULT_YARN, fiber: str | None = None, spacing_scale: float = 1.0,
                 loop_size: float = 1.0, dye: str | None = None,
                 depth_of_shade: float | None = None, samples_per_loop: int = 16,
-                min_clearance: float = DEFAULT_MIN_CLEARANCE) -> Usd.Prim:
+                min_clearance: float = DEFAULT_MIN_CLEARANCE,
+                memory_budget: MemoryBudget | None = None) -> Usd.Prim:
     """Plain knit (every row knit): an Xform at ``path`` with BasisCurves ``Rows``.
 
     ``rows`` curves of ``loops`` loops each; ``yarn`` a Table 3 preset, ``fiber`` a fiber
     preset overriding its composition; ``loop_size`` scales the loops in the fabric plane,
     ``spacing_scale`` the row spacing; ``samples_per_loop`` interpolated points per loop
-    (control points per loop). Returns the Xform prim. See the module doc.
+    (control points per loop). ``memory_budget`` (default :meth:`MemoryBudget.resolve`):
+    a cloth whose control points do not fit is refused (MemoryBudgetError) before anything
+    is allocated. Returns the Xform prim. See the module doc.
     """
     return _knit(stage, path, "stockinette", rows=rows, loops=loops, yarn=yarn, fiber=fiber,
                  spacing_scale=spacing_scale, loop_size=loop_size, dye=dye,
                  depth_of_shade=depth_of_shade, samples_per_loop=samples_per_loop,
-                 min_clearance=min_clearance)
+                 min_clearance=min_clearance, memory_budget=memory_budget)
 
 
 def garter(stage: Usd.Stage, path: str | Sdf.Path, *, rows: int = 8, loops: int = 8,
            yarn: str = DEFAULT_YARN, fiber: str | None = None, spacing_scale: float = 1.0,
            loop_size: float = 1.0, dye: str | None = None,
            depth_of_shade: float | None = None, samples_per_loop: int = 16,
-           min_clearance: float = DEFAULT_MIN_CLEARANCE) -> Usd.Prim:
+           min_clearance: float = DEFAULT_MIN_CLEARANCE,
+           memory_budget: MemoryBudget | None = None) -> Usd.Prim:
     """Garter stitch (knit and purl rows alternating, row 0 knit): Xform with ``Rows``.
 
     Parameters as :func:`stockinette`.
@@ -346,7 +360,7 @@ def garter(stage: Usd.Stage, path: str | Sdf.Path, *, rows: int = 8, loops: int 
     return _knit(stage, path, "garter", rows=rows, loops=loops, yarn=yarn, fiber=fiber,
                  spacing_scale=spacing_scale, loop_size=loop_size, dye=dye,
                  depth_of_shade=depth_of_shade, samples_per_loop=samples_per_loop,
-                 min_clearance=min_clearance)
+                 min_clearance=min_clearance, memory_budget=memory_budget)
 
 
 # ----------------------------------------------------------------------------- weaves
@@ -401,13 +415,16 @@ def _weave_curves(warps: int, wefts: int, spacing: float, c: float, repeat: int,
 def _weave(stage: Usd.Stage, path: str | Sdf.Path, name: str, *, warps: int, wefts: int,
            yarn: str, fiber: str | None, spacing: float | None, crimp: float,
            dye: str | None, depth_of_shade: float | None, min_clearance: float,
-           repeat: int, over: Callable[[int, int], bool], doc: str) -> Usd.Prim:
+           memory_budget: MemoryBudget | None, repeat: int, over: Callable[[int, int], bool], doc: str) -> Usd.Prim:
     warps = _check_int("warps", warps, 1)
     wefts = _check_int("wefts", wefts, 1)
     crimp = _check_pos("crimp", crimp)
     if spacing is not None:
         spacing = _check_pos("spacing", spacing)
     min_clearance = _check_clearance(min_clearance)
+    # Control points of a yarn crossing k others: 4 per crossing plus the ends (_weave_yarn).
+    _check_budget(f"cloth {name} of {warps} warps x {wefts} wefts",
+                  warps * (4 * wefts + 3) + wefts * (4 * warps + 3), memory_budget)
 
     def build(diameter: float) -> list[_Yarns]:
         s = DEFAULT_WEAVE_SPACING * diameter if spacing is None else spacing
@@ -429,7 +446,8 @@ def _weave(stage: Usd.Stage, path: str | Sdf.Path, name: str, *, warps: int, wef
 def plain_weave(stage: Usd.Stage, path: str | Sdf.Path, *, warps: int = 16, wefts: int = 16,
                 yarn: str = DEFAULT_YARN, fiber: str | None = None, spacing: float | None = None,
                 crimp: float = 1.0, dye: str | None = None, depth_of_shade: float | None = None,
-                min_clearance: float = DEFAULT_MIN_CLEARANCE) -> Usd.Prim:
+                min_clearance: float = DEFAULT_MIN_CLEARANCE,
+                memory_budget: MemoryBudget | None = None) -> Usd.Prim:
     """Plain weave: an Xform at ``path`` with BasisCurves ``Warp`` (along y) and ``Weft``.
 
     ``spacing`` between neighbouring yarns in mm (default 2.5 yarn diameters); ``crimp``:
@@ -437,7 +455,7 @@ def plain_weave(stage: Usd.Stage, path: str | Sdf.Path, *, warps: int = 16, weft
     """
     return _weave(stage, path, "plain weave", warps=warps, wefts=wefts, yarn=yarn, fiber=fiber,
                   spacing=spacing, crimp=crimp, dye=dye, depth_of_shade=depth_of_shade,
-                  min_clearance=min_clearance, repeat=2,
+                  min_clearance=min_clearance, memory_budget=memory_budget, repeat=2,
                   over=lambda i, j: (i + j) % 2 == 0,
                   doc=f"plain weave, {warps} warps x {wefts} wefts, yarn {yarn}, generated by "
                       f"usdfiber.cloth; warp i is over weft j when i + j is even")
@@ -447,7 +465,8 @@ def satin(stage: Usd.Stage, path: str | Sdf.Path, *, warps: int = 20, wefts: int
           yarn: str = DEFAULT_YARN, fiber: str | None = None, spacing: float | None = None,
           crimp: float = 1.0, floats: int = 4, step: int | None = None, dye: str | None = None,
           depth_of_shade: float | None = None,
-          min_clearance: float = DEFAULT_MIN_CLEARANCE) -> Usd.Prim:
+          min_clearance: float = DEFAULT_MIN_CLEARANCE,
+          memory_budget: MemoryBudget | None = None) -> Usd.Prim:
     """Warp-faced satin: each warp floats over ``floats`` wefts and under one.
 
     ``step``: the move number (default :func:`satin_step`, 2 for floats = 4: the 5-harness
@@ -465,7 +484,7 @@ def satin(stage: Usd.Stage, path: str | Sdf.Path, *, warps: int = 20, wefts: int
                 f"between 2 and {r - 2} and coprime with {r}")
     return _weave(stage, path, "satin", warps=warps, wefts=wefts, yarn=yarn, fiber=fiber,
                   spacing=spacing, crimp=crimp, dye=dye, depth_of_shade=depth_of_shade,
-                  min_clearance=min_clearance, repeat=r,
+                  min_clearance=min_clearance, memory_budget=memory_budget, repeat=r,
                   over=lambda i, j: (j - step * i) % r != 0,
                   doc=f"{r}-harness warp-faced satin (floats {floats}, step {step}), {warps} "
                       f"warps x {wefts} wefts, yarn {yarn}, generated by usdfiber.cloth; warp "

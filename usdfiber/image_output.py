@@ -33,7 +33,8 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Callable, Mapping
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -50,9 +51,11 @@ __all__ = [
     "SOURCE_SPACE",
     "UNTONEMAPPED_VIEW",
     "ImageOutputError",
+    "check_writable",
     "display_image",
     "list_views",
     "read_exr",
+    "read_exr_channels",
     "resolve_config",
     "write_display_png",
     "write_exr",
@@ -88,6 +91,7 @@ class ImageOutputError(RuntimeError):
 def write_exr(path: str | os.PathLike[str], rgb: np.ndarray,
               metadata: Mapping[str, MetaValue] | None = None, *, half: bool = True,
               extra_channels: Mapping[str, np.ndarray] | None = None,
+              channel_names: Mapping[str, Sequence[str]] | None = None,
               allow_nonfinite: bool = False) -> None:
     """Write a scene-referred linear Rec.709 image as an OpenEXR file, atomically.
 
@@ -99,7 +103,10 @@ def write_exr(path: str | os.PathLike[str], rgb: np.ndarray,
 
     ``extra_channels`` maps a layer name to an ``(H, W)`` or ``(H, W, C)`` array, C <= 4,
     stored in the same precision as RGB: one channel is named after the layer, 2 as
-    ``name.X/Y``, 3 as ``name.R/G/B``, 4 as ``name.R/G/B/A``.
+    ``name.X/Y``, 3 as ``name.R/G/B``, 4 as ``name.R/G/B/A``, unless ``channel_names`` gives a
+    layer's channel names (``{"normal": ("normal.X", "normal.Y", "normal.Z")}``, or
+    ``{"A": ("A",)}`` for the image's alpha). Compositors (Nuke, OIIO) read ``layer.channel``
+    names as layers.
 
     NaN or Inf pixels (and, in half mode, finite values beyond the half range that would be
     stored as Inf) raise :class:`ImageOutputError` with their count and the first one's
@@ -119,7 +126,11 @@ def write_exr(path: str | os.PathLike[str], rgb: np.ndarray,
             raise ImageOutputError(
                 f"cannot write {path}: extra channel {layer!r} has shape {data.shape}, "
                 f"expected ({height}, {width}) or ({height}, {width}, C) with C <= 4")
-        layer_names = [layer + s for s in _LAYER_SUFFIXES[data.shape[2]]]
+        given = (channel_names or {}).get(layer)
+        if given is not None and len(given) != data.shape[2]:
+            raise ImageOutputError(f"cannot write {path}: extra channel {layer!r} has {data.shape[2]} "
+                                   f"channel(s) but {len(given)} name(s)")
+        layer_names = list(given) if given is not None else [layer + s for s in _LAYER_SUFFIXES[data.shape[2]]]
         if clash := set(layer_names) & set(names):
             raise ImageOutputError(f"cannot write {path}: channel name(s) {sorted(clash)} used twice")
         names += layer_names
@@ -168,6 +179,24 @@ def read_exr(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, str]]:
     finally:
         inp.close()
     return rgb, header
+
+
+def read_exr_channels(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Every channel of an EXR by name (``"R"``, ``"A"``, ``"albedo.R"``, ``"depth.Z"``...),
+    each ``(H, W)`` float32, in the file's order."""
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageOutputError(f"cannot read {path}: {oiio.geterror() or 'unreadable'}")
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if data is None:
+            raise ImageOutputError(f"cannot read {path}: {inp.geterror() or 'read failed'}")
+        data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        return {name: np.ascontiguousarray(data[..., i]) for i, name in enumerate(spec.channelnames)}
+    finally:
+        inp.close()
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,10 +352,34 @@ def _atomic_write(path: Path, write: Callable[[str], None]) -> None:
     Readers (a viewer polling the output, a comparison script) see the old image or the new
     one, never a partial one; any failure removes the temporary file.
     """
+    def checked(tmp: str) -> None:
+        write(tmp)
+        # A writer that reports success but wrote nothing (a full disk seen late) is a failure.
+        if os.path.getsize(tmp) == 0:
+            raise OSError("the image writer left an empty file")
+
     try:
-        write_atomic(path, write)
+        write_atomic(path, checked)
     except OSError as exc:
         raise ImageOutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def check_writable(path: str | os.PathLike[str]) -> None:
+    """Raise :class:`ImageOutputError` unless an image can be written at ``path``: its folder
+    exists and takes a new file, and ``path`` is not a folder. Checked before a render, so
+    that a long render does not end in a failed write."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise ImageOutputError(f"cannot write {path}: it is a directory")
+    if not folder.is_dir():
+        raise ImageOutputError(f"cannot write {path}: the folder {folder} does not exist")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=folder)
+    except OSError as exc:
+        raise ImageOutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 @functools.lru_cache(maxsize=8)

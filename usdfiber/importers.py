@@ -74,9 +74,11 @@ import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from usdfiber import authoring
+from usdfiber.memory_budget import MemoryBudget
+from usdfiber.spec.attributes import Fiber
 
-__all__ = ["CurveData", "CurveFileError", "DEFAULT_FIBER_PRESET", "import_curves",
-           "read_bcc", "read_curves", "read_hair", "write_curves"]
+__all__ = ["BYTES_PER_IMPORTED_POINT", "CurveData", "CurveFileError", "DEFAULT_FIBER_PRESET", "UNSET",
+           "check_file_budget", "import_curves", "read_bcc", "read_curves", "read_hair", "write_curves"]
 
 DEFAULT_FIBER_PRESET = "polyester"
 
@@ -393,7 +395,8 @@ def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ writing
-_UNSET: Any = object()
+#: ``preset`` left out: the default fiber preset, unless ``yarn`` is given.
+UNSET: Any = object()
 
 
 def _positive(name: str, value: Any) -> float:
@@ -406,11 +409,28 @@ def _positive(name: str, value: Any) -> float:
     return v
 
 
+#: Peak bytes per imported point (the file's float32, the scaled float64 copy, USD's float32
+#: arrays, widths and the written layer), rounded up.
+BYTES_PER_IMPORTED_POINT = 160
+#: The largest finite float32: USD stores points and widths as float32.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _finite_in_usd(values: np.ndarray, path: Any, attribute: str, what: str, options: str) -> None:
+    """Raise ValueError when scaled ``values`` overflow USD's float32 (they would be written as inf)."""
+    big = ~(np.abs(values) <= _FLOAT32_MAX)
+    if big.any():
+        i = int(np.flatnonzero(big.reshape(len(values), -1).any(axis=1))[0])
+        raise ValueError(f"{_name(path)}: {attribute}: {what} {i} becomes {np.ravel(values[i])[0]:g} after "
+                         f"scaling, beyond the float32 range of USD (|x| <= {_FLOAT32_MAX:.4g}); lower {options}")
+
+
 def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
-                 preset: str | None = _UNSET, yarn: str | None = None,
+                 preset: str | None = UNSET, yarn: str | None = None,
                  units_per_file_unit: float = 1.0, meters_per_unit: float = 0.001,
                  width: float | str | None = None, dye: str | None = None,
-                 depth_of_shade: float | None = None, root: str | None = None) -> Path:
+                 depth_of_shade: float | None = None, root: str | None = None,
+                 memory_budget: MemoryBudget | None = None) -> Path:
     """Write ``data`` to a new USD file (overwritten if it exists); see :func:`import_curves`."""
     scale = _positive("units_per_file_unit", units_per_file_unit)
     mpu = _positive("meters_per_unit", meters_per_unit)
@@ -437,7 +457,10 @@ def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
     root_path = Sdf.Path.absoluteRootPath.AppendChild(root_name)
     stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, root_path).GetPrim())
 
+    (memory_budget or MemoryBudget.resolve()).require(
+        len(data.points) * BYTES_PER_IMPORTED_POINT, f"{_name(data.path)}: importing {len(data.points)} points")
     points = data.points.astype(np.float64) * scale
+    _finite_in_usd(points, data.path, "points", "coordinate", "--units-per-file-unit")
     starts = np.concatenate([[0], np.cumsum(data.counts)[:-1]]).astype(np.int64)
     groups = [("Curves", ~data.closed, "nonperiodic"), ("ClosedCurves", data.closed, "periodic")]
     present = [(n, m, w) for n, m, w in groups if m.any()]
@@ -460,10 +483,10 @@ def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
             pv.Set(Vt.IntArray.FromNumpy(curve_ids.astype(np.int32)))
         prim = curves.GetPrim()
         if yarn is not None:
-            authoring.apply_yarn(prim, yarn, None if preset is _UNSET else preset,
+            authoring.apply_yarn(prim, yarn, None if preset is UNSET else preset,
                                  **_dye_args(dye, depth_of_shade))
         else:
-            authoring.apply_fiber(prim, DEFAULT_FIBER_PRESET if preset is _UNSET else preset,
+            authoring.apply_fiber(prim, DEFAULT_FIBER_PRESET if preset is UNSET else preset,
                                   **_dye_args(dye, depth_of_shade))
         if isinstance(width, float):
             widths, interp = np.array([width]), UsdGeom.Tokens.constant
@@ -474,6 +497,7 @@ def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
         else:
             widths, interp = np.array([_nominal_width(prim, yarn is not None, mpu)]), \
                 UsdGeom.Tokens.constant
+        _finite_in_usd(widths, data.path, "widths", "width", "--units-per-file-unit or --width")
         wv = Vt.FloatArray.FromNumpy(np.ascontiguousarray(widths, dtype=np.float32))
         curves.CreateWidthsAttr(wv)
         curves.SetWidthsInterpolation(interp)
@@ -508,14 +532,15 @@ def _nominal_width(prim: Usd.Prim, is_yarn: bool, mpu: float) -> float:
     """The fiber diameter (um) or nominal yarn diameter (mm) in scene units."""
     if is_yarn:
         return authoring.yarn_diameter_mm(prim) * 1e-3 / mpu
-    return float(prim.GetAttribute("fiber:diameter").Get()) * 1e-6 / mpu
+    return float(prim.GetAttribute(Fiber.DIAMETER).Get()) * 1e-6 / mpu
 
 
 def import_curves(src: str | os.PathLike[str], dst_usd: str | os.PathLike[str], *,
-                  preset: str | None = _UNSET, yarn: str | None = None,
+                  preset: str | None = UNSET, yarn: str | None = None,
                   units_per_file_unit: float = 1.0, meters_per_unit: float = 0.001,
                   width: float | str | None = None, dye: str | None = None,
-                  depth_of_shade: float | None = None, root: str | None = None) -> Path:
+                  depth_of_shade: float | None = None, root: str | None = None,
+                  memory_budget: MemoryBudget | None = None) -> Path:
     """Import a BCC or HAIR file ``src`` as fiber (or yarn) curves into a new stage ``dst_usd``.
 
     - ``preset``: the fiber preset (default "polyester"; None authors only FiberAPI's
@@ -534,11 +559,28 @@ def import_curves(src: str | os.PathLike[str], dst_usd: str | os.PathLike[str], 
       both, each carries a uniform ``primvars:sourceCurveIndex`` with the curves' indices
       in the file.
 
+    - ``memory_budget`` (default :meth:`MemoryBudget.resolve`): a file whose points do not
+      fit is refused (MemoryBudgetError) before it is read.
+
     Returns the output path. Raises CurveFileError for malformed files,
     usdfiber.authoring.AuthoringError for unknown presets or dyes, ValueError for bad
-    numbers.
+    numbers (also points or widths that overflow float32 once scaled).
     """
+    budget = memory_budget or MemoryBudget.resolve()
+    check_file_budget(src, budget)
     data = read_curves(src)
     return write_curves(data, dst_usd, preset=preset, yarn=yarn,
                         units_per_file_unit=units_per_file_unit, meters_per_unit=meters_per_unit,
-                        width=width, dye=dye, depth_of_shade=depth_of_shade, root=root)
+                        width=width, dye=dye, depth_of_shade=depth_of_shade, root=root,
+                        memory_budget=budget)
+
+
+def check_file_budget(src: str | os.PathLike[str], budget: MemoryBudget) -> None:
+    """Refuse a curve file whose points (at least 12 bytes each in the file) would not fit
+    ``budget`` once imported, before reading it."""
+    try:
+        size = os.path.getsize(src)
+    except OSError:
+        return  # read_curves reports the file itself
+    budget.require(size / 12 * BYTES_PER_IMPORTED_POINT,
+                   f"{_name(src)}: importing a curve file of {size} bytes (up to {size // 12} points)")

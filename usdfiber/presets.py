@@ -24,6 +24,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from usdfiber.spec.attributes import Fiber, Yarn
+from usdfiber.spec.yarn import yarn_diameter
+
 PAPER = 'Aliaga, Castillo, Gutierrez, Otaduy, Lopez-Moreno, Jarabo: "An Appearance Model for ' \
         'Textile Fibers", EGSR 2017 (Computer Graphics Forum 36(4))'
 
@@ -144,20 +147,20 @@ class FiberPreset:
     def fiber_attributes(self) -> dict[str, Any]:
         """The FiberAPI attribute values this preset authors (schema name -> value)."""
         return {
-            "fiber:kind": self.name,
-            "fiber:profile": "auto",
-            "fiber:diameter": self.diameter_um,
-            "fiber:density": self.density_g_cm3,
-            "fiber:ior:parallel": self.ior_parallel,
-            "fiber:ior:perpendicular": self.ior_perpendicular,
-            "fiber:ior:effective": "mean",
-            "fiber:roughness:source": "beta",
-            "fiber:roughness:ra": self.ra_nm,
-            "fiber:roughness:profileLength": self.profile_length_nm,
-            "fiber:roughness:beta": self.beta_deg,
-            "fiber:cuticle:tilt": self.cuticle.tilt_deg,
-            "fiber:cuticle:height": self.cuticle.height_um,
-            "fiber:cuticle:spacing": self.cuticle.spacing_um,
+            Fiber.KIND: self.name,
+            Fiber.PROFILE: "auto",
+            Fiber.DIAMETER: self.diameter_um,
+            Fiber.DENSITY: self.density_g_cm3,
+            Fiber.IOR_PARALLEL: self.ior_parallel,
+            Fiber.IOR_PERPENDICULAR: self.ior_perpendicular,
+            Fiber.IOR_EFFECTIVE: "mean",
+            Fiber.ROUGHNESS_SOURCE: "beta",
+            Fiber.ROUGHNESS_RA: self.ra_nm,
+            Fiber.ROUGHNESS_PROFILE_LENGTH: self.profile_length_nm,
+            Fiber.ROUGHNESS_BETA: self.beta_deg,
+            Fiber.CUTICLE_TILT: self.cuticle.tilt_deg,
+            Fiber.CUTICLE_HEIGHT: self.cuticle.height_um,
+            Fiber.CUTICLE_SPACING: self.cuticle.spacing_um,
         }
 
 
@@ -301,18 +304,9 @@ def ply_radius_mm(dtex: float, density_g_cm3: float,
     return math.sqrt(ply_area_m2 / math.pi) * 1e3
 
 
-def yarn_diameter_mm(plies: int, ply_radius: float) -> float:
-    """Diameter (mm) of the circle enclosing ``plies`` touching circular plies of radius r.
-
-    Ply centres lie at d = r / sin(pi / N) from the yarn centre (d = 0 for one ply).
-    """
-    d = 0.0 if plies <= 1 else ply_radius / math.sin(math.pi / plies)
-    return 2.0 * (d + ply_radius)
-
-
 @dataclass(frozen=True)
 class YarnPreset:
-    """A Table 3 thread: the published row plus what :func:`apply_yarn` authors."""
+    """A Table 3 thread: the published row plus what :func:`~usdfiber.authoring.apply_yarn` authors."""
 
     name: str
     published: Table3Row
@@ -333,19 +327,20 @@ class YarnPreset:
 
     @property
     def yarn_diameter_mm(self) -> float:
-        return yarn_diameter_mm(self.published.plies, self.ply_radius_mm)
+        """Nominal yarn diameter (mm) of touching plies (:func:`usdfiber.spec.yarn.yarn_diameter`)."""
+        return yarn_diameter(self.published.plies, self.ply_radius_mm)
 
     def yarn_attributes(self) -> dict[str, Any]:
         """The FiberYarnAPI attribute values this preset authors (schema name -> value)."""
         p = self.published
         return {
-            "yarn:plies": p.plies,
-            "yarn:fibersPerPly": p.fibers_per_ply,
-            "yarn:ply:linearDensity": p.dtex,
-            "yarn:fiber:stapleLength": self.staple_length_cm,
-            "yarn:ply:twist": p.twist,
-            "yarn:fiber:twist": p.twist,
-            "yarn:ply:radius": self.ply_radius_mm,
+            Yarn.PLIES: p.plies,
+            Yarn.FIBERS_PER_PLY: p.fibers_per_ply,
+            Yarn.PLY_LINEAR_DENSITY: p.dtex,
+            Yarn.FIBER_STAPLE_LENGTH: self.staple_length_cm,
+            Yarn.PLY_TWIST: p.twist,
+            Yarn.FIBER_TWIST: p.twist,
+            Yarn.PLY_RADIUS: self.ply_radius_mm,
         }
 
 
@@ -377,5 +372,5 @@ __all__ = [
     "AUTO_PROFILE_FAMILY", "Cuticle", "DYE_COLOURS", "DYE_PRESETS", "DyeColour", "DyePreset",
     "FIBER_PRESETS", "FiberPreset", "PACKING_FRACTION", "TABLE1", "Table1Row", "Table3Row",
     "YARN_PRESETS", "YarnPreset", "dye_values", "fiber_preset", "midpoint", "ply_radius_mm",
-    "yarn_diameter_mm", "yarn_preset",
+    "yarn_preset",
 ]

@@ -12,9 +12,14 @@ reports them as errors of the check.
 USD prints diagnostics straight to the process's stderr, from its worker threads too, so
 Python-level redirection cannot catch them: :func:`captured_stderr` redirects file
 descriptor 2 while USD works.
+
+:func:`stage_metrics_problems` reports a ``metersPerUnit`` or ``upAxis`` that no length or
+camera can be built on; ``usdfiber check`` and the renderer refuse such stages with its
+messages.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 import sys
@@ -23,7 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from pxr import Pcp, Sdf, Tf, Usd
+from pxr import Pcp, Sdf, Tf, Usd, UsdGeom
 
 from usdfiber.validation.problems import Problem, Severity
 
@@ -195,5 +200,78 @@ def composition_problems(stage: Usd.Stage) -> list[Problem]:
     return out
 
 
+# --- stage metrics ------------------------------------------------------------------------
+
+def _metric_layer(stage: Usd.Stage, key: str) -> Sdf.Layer:
+    """The layer whose opinion of the stage metadatum ``key`` wins (session, else root)."""
+    session = stage.GetSessionLayer()
+    return session if session and session.pseudoRoot.HasInfo(key) else stage.GetRootLayer()
+
+
+def stage_metrics_problems(stage: Usd.Stage) -> list[Problem]:
+    """Errors in the stage's ``metersPerUnit`` and ``upAxis``, each naming the file.
+
+    Every length of a fiber stage is converted through metersPerUnit (widths against the
+    fiber diameter, the fibers' absorption), so it must be a finite number > 0; the
+    renderer's default camera and lights stand on upAxis, which USD defines as "Y" or "Z".
+    Unauthored values take USD's fallbacks (0.01 and the fallback up axis), which are valid.
+    """
+    out: list[Problem] = []
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    if not (isinstance(mpu, (int, float)) and math.isfinite(mpu) and mpu > 0):
+        layer = _metric_layer(stage, "metersPerUnit")
+        out.append(Problem(
+            "MetersPerUnitInvalid", Severity.ERROR, "/", None,
+            f"{_layer_name(layer)}: metersPerUnit = {mpu:g}; expected a finite number > 0 "
+            f"(metres per scene unit, e.g. 0.01 for centimetres)", layer.identifier))
+    up = str(UsdGeom.GetStageUpAxis(stage))
+    if up not in ("Y", "Z"):
+        layer = _metric_layer(stage, "upAxis")
+        out.append(Problem(
+            "UpAxisInvalid", Severity.ERROR, "/", None,
+            f'{_layer_name(layer)}: upAxis = "{up}"; expected "Y" or "Z"', layer.identifier))
+    return out
+
+
+def animated_only(attr: Usd.Attribute) -> bool:
+    """Whether ``attr`` has time samples but no value at the default time code (USD does not
+    look at samples there, so a render at the default time sees nothing)."""
+    return bool(attr) and attr.GetNumTimeSamples() > 0 and attr.Get(Usd.TimeCode.Default()) is None
+
+
+def default_render_time(stage: Usd.Stage) -> tuple[float, str] | None:
+    """The time code to render when none is asked for, and the note saying so; None when the
+    default time code shows the stage.
+
+    A stage whose geometry is animated only (points with time samples and no default value,
+    as animation caches are written) draws nothing at the default time. Then the stage's
+    startTimeCode is rendered when authored, else the earliest such sample.
+    """
+    first: float | None = None
+    where = ""
+    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        if not prim.IsA(UsdGeom.PointBased):
+            continue
+        attr = UsdGeom.PointBased(prim).GetPointsAttr()
+        if animated_only(attr):
+            t = float(attr.GetTimeSamples()[0])
+            if first is None or t < first:
+                first, where = t, str(prim.GetPath())
+    if first is None:
+        return None
+    if stage.HasAuthoredTimeCodeRange():
+        t, why = float(stage.GetStartTimeCode()), "the stage's startTimeCode"
+    else:
+        t, why = first, f"the first time sample of {where}.points"
+    return t, (f"no frame given and {where}.points has time samples only (nothing to draw at the "
+               f"default time): rendering frame {t:g}, {why}; pass a frame to choose another")
+
+
+def _layer_name(layer: Sdf.Layer) -> str:
+    from usdfiber.errors import short_path
+
+    return short_path(layer.realPath) if layer.realPath else layer.identifier
+
+
 __all__ = ["StageOpenError", "USD_EXTENSIONS", "captured_stderr", "composition_problems",
-           "open_stage"]
+           "animated_only", "default_render_time", "open_stage", "stage_metrics_problems"]

@@ -29,6 +29,10 @@ the old file or the new one at the target path, never a partial one.
 Reading verifies the container and raises :class:`TableError` whose message says why:
 ``missing``, ``not a usdfiber table``, ``truncated or corrupt: ...``,
 ``checksum mismatch for array X`` or ``unsupported version N``.
+
+The same container, under another ``format`` name (the ``container`` argument), holds the
+baker's resume chunks (:mod:`usdfiber.bake.chunks`); yarn far fields are tables with their
+own ``kind``. What the arrays of a BCSDF table mean: :mod:`usdfiber.bake.storage`.
 """
 from __future__ import annotations
 
@@ -77,16 +81,24 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON serializable")
 
 
+def _what(container: str) -> str:
+    """How messages name a file of ``container``."""
+    return "usdfiber table" if container == FORMAT else f"{container} file"
+
+
 def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
-                arrays: Mapping[str, np.ndarray], *, compress: bool = True) -> dict[str, Any]:
+                arrays: Mapping[str, np.ndarray], *, compress: bool = True,
+                container: str = FORMAT) -> dict[str, Any]:
     """Write a table atomically and return the full header written.
 
-    ``header`` must hold :data:`REQUIRED_HEADER_KEYS`; ``format``, ``version``, ``arrays`` and
+    ``header`` must hold :data:`REQUIRED_HEADER_KEYS` (for tables: another ``container``
+    name has no required keys); ``format`` (= ``container``), ``version``, ``arrays`` and
     ``checksums`` are filled in, ``created`` when absent. Array names are identifiers other
     than ``header``; object arrays are refused.
     """
     path = Path(path)
-    missing = [k for k in REQUIRED_HEADER_KEYS if k not in header]
+    required = REQUIRED_HEADER_KEYS if container == FORMAT else ()
+    missing = [k for k in required if k not in header]
     if missing:
         raise TableError(path, f"cannot write: header lacks {', '.join(missing)}")
     clean: dict[str, np.ndarray] = {}
@@ -99,7 +111,7 @@ def write_table(path: str | os.PathLike[str], header: Mapping[str, Any],
         clean[name] = a
 
     full = dict(header)
-    full["format"] = FORMAT
+    full["format"] = container
     full["version"] = VERSION
     full.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     full["arrays"] = {n: {"dtype": a.dtype.str, "shape": list(a.shape)} for n, a in clean.items()}
@@ -126,11 +138,12 @@ def save_npz_atomic(path: str | os.PathLike[str], arrays: Mapping[str, np.ndarra
     write_atomic(path, write)
 
 
-def _open(path: Path):
+def _open(path: Path, container: str):
+    what = _what(container)
     if not path.exists():
         raise TableError(path, "missing")
     if not path.is_file():
-        raise TableError(path, "not a usdfiber table (not a regular file)")
+        raise TableError(path, f"not a {what} (not a regular file)")
     with open(path, "rb") as f:
         magic = f.read(len(_ZIP_MAGIC))
     if not magic:
@@ -138,7 +151,7 @@ def _open(path: Path):
     if magic != _ZIP_MAGIC:
         if _ZIP_MAGIC.startswith(magic):
             raise TableError(path, f"truncated or corrupt: only {len(magic)} bytes")
-        raise TableError(path, "not a usdfiber table (not an .npz archive)")
+        raise TableError(path, f"not a {what} (not an .npz archive)")
     try:
         return np.load(path, allow_pickle=False)
     except Exception as exc:  # zipfile.BadZipFile, EOFError, OSError, ValueError, ...
@@ -152,18 +165,19 @@ def _read_entry(path: Path, z, name: str) -> np.ndarray:
         raise TableError(path, f"truncated or corrupt: cannot read {name}: {exc}") from exc
 
 
-def _header(path: Path, z) -> dict[str, Any]:
+def _header(path: Path, z, container: str) -> dict[str, Any]:
+    what = _what(container)
     if HEADER_ENTRY not in z.files:
-        raise TableError(path, "not a usdfiber table (no header entry)")
+        raise TableError(path, f"not a {what} (no header entry)")
     raw = _read_entry(path, z, HEADER_ENTRY)
     if raw.dtype != np.uint8 or raw.ndim != 1:
-        raise TableError(path, "not a usdfiber table (header is not UTF-8 bytes)")
+        raise TableError(path, f"not a {what} (header is not UTF-8 bytes)")
     try:
         header = json.loads(raw.tobytes().decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TableError(path, f"not a usdfiber table (header is not UTF-8 JSON: {exc})") from exc
-    if not isinstance(header, dict) or header.get("format") != FORMAT:
-        raise TableError(path, f"not a usdfiber table (format is not {FORMAT!r})")
+        raise TableError(path, f"not a {what} (header is not UTF-8 JSON: {exc})") from exc
+    if not isinstance(header, dict) or header.get("format") != container:
+        raise TableError(path, f"not a {what} (format is not {container!r})")
     version = header.get("version")
     if version != VERSION or isinstance(version, bool):
         raise TableError(path, f"unsupported version {version} (this usdfiber reads version {VERSION})")
@@ -195,29 +209,32 @@ def _arrays(path: Path, z, header: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
-def read_header(path: str | os.PathLike[str], *, verify: bool = False) -> dict[str, Any]:
+def read_header(path: str | os.PathLike[str], *, verify: bool = False,
+                container: str = FORMAT) -> dict[str, Any]:
     """The header of a table, after checking the container, format and version.
 
     Cheap: arrays are not read. ``verify=True`` also checks every array's checksum.
     """
     p = Path(path)
-    z = _open(p)
+    z = _open(p, container)
     with z:
-        header = _header(p, z)
+        header = _header(p, z, container)
         if verify:
             _arrays(p, z, header)
     return header
 
 
-def read_table(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """``(header, arrays)`` of a table, with format, version and every checksum verified."""
+def read_table(path: str | os.PathLike[str], *,
+               container: str = FORMAT) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``(header, arrays)`` of a table (or of a file of another ``container`` name), with
+    format, version and every checksum verified."""
     p = Path(path)
-    z = _open(p)
+    z = _open(p, container)
     with z:
-        header = _header(p, z)
+        header = _header(p, z, container)
         arrays = _arrays(p, z, header)
     return header, arrays
 
 
 __all__ = ["FORMAT", "REQUIRED_HEADER_KEYS", "TableError", "VERSION", "array_checksum",
-           "read_header", "read_table", "write_table"]
+           "read_header", "read_table", "save_npz_atomic", "write_table"]

@@ -38,14 +38,17 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode, to_mi_transform
+from usdfiber.translators.mitsuba.errors import TranslationError
+from usdfiber.translators.mitsuba.render_settings import as_timecode, to_mi_transform
 
-__all__ = ["CameraWarning", "CONFORM_POLICIES", "camera_sensor", "conform_aperture", "default_camera"]
+__all__ = ["CameraWarning", "CONFORM_POLICIES", "DefaultFraming", "camera_sensor", "conform_aperture", "default_camera",
+           "default_framing"]
 
 # Gf.Camera.APERTURE_UNIT / FOCAL_LENGTH_UNIT: tenths of a scene unit.
 _UNIT = 0.1
@@ -220,20 +223,23 @@ def camera_sensor(
     return sensor
 
 
-def default_camera(
-    bbox_min: np.ndarray,
-    bbox_max: np.ndarray,
-    width: int,
-    height: int,
-    *,
-    spp: int,
-    seed: int = 0,
-    up_axis: str = "Y",
-    fov: float = 30.0,
-    elevation: float = 15.0,
-    film_extra: dict | None = None,
-) -> dict:
-    """A perspective sensor framing the world box [bbox_min, bbox_max] (no camera on the stage).
+@dataclass(frozen=True)
+class DefaultFraming:
+    """Where the default camera (:func:`default_camera`) stands and looks: world-space eye,
+    target and up vector, the field of view (degrees, along the smaller image axis) and the
+    clipping range. Level of detail uses it as the view of a stage without a camera."""
+
+    eye: np.ndarray
+    target: np.ndarray
+    up: np.ndarray
+    fov: float
+    near: float
+    far: float
+
+
+def default_framing(bbox_min: np.ndarray, bbox_max: np.ndarray, *, up_axis: str = "Y", fov: float = 30.0,
+                    elevation: float = 15.0) -> DefaultFraming:
+    """The framing of the world box [bbox_min, bbox_max] by the default camera.
 
     The camera looks at the box centre from the front, raised by ``elevation`` degrees:
     from +Z for a Y-up stage, from -Y for a Z-up stage (``up_axis``). It fits the box's
@@ -249,22 +255,42 @@ def default_camera(
     dist = radius / math.sin(math.radians(fov) / 2.0)
     el = math.radians(elevation)
     if up_axis.upper() == "Z":
-        view_from, up = np.array([0.0, -math.cos(el), math.sin(el)]), [0.0, 0.0, 1.0]
+        view_from, up = np.array([0.0, -math.cos(el), math.sin(el)]), np.array([0.0, 0.0, 1.0])
     elif up_axis.upper() == "Y":
-        view_from, up = np.array([0.0, math.sin(el), math.cos(el)]), [0.0, 1.0, 0.0]
+        view_from, up = np.array([0.0, math.sin(el), math.cos(el)]), np.array([0.0, 1.0, 0.0])
     else:
         raise ValueError(f"up_axis must be 'Y' or 'Z', got {up_axis!r}")
+    return DefaultFraming(eye=centre + dist * view_from, target=centre, up=up, fov=float(fov),
+                          near=max(1e-4 * dist, 0.5 * (dist - radius)), far=2.0 * (dist + radius))
+
+
+def default_camera(
+    bbox_min: np.ndarray,
+    bbox_max: np.ndarray,
+    width: int,
+    height: int,
+    *,
+    spp: int,
+    seed: int = 0,
+    up_axis: str = "Y",
+    fov: float = 30.0,
+    elevation: float = 15.0,
+    film_extra: dict | None = None,
+) -> dict:
+    """A perspective sensor framing the world box [bbox_min, bbox_max] (no camera on the
+    stage), as :func:`default_framing` places it."""
+    f = default_framing(bbox_min, bbox_max, up_axis=up_axis, fov=fov, elevation=elevation)
     from usdfiber.backend import mitsuba
 
     mi = mitsuba()
-    eye = centre + dist * view_from
     return {
         "type": "perspective",
-        "fov": float(fov),
+        "fov": f.fov,
         "fov_axis": "smaller",
-        "to_world": mi.ScalarTransform4f().look_at(origin=eye.tolist(), target=centre.tolist(), up=up),
-        "near_clip": max(1e-4 * dist, 0.5 * (dist - radius)),
-        "far_clip": 2.0 * (dist + radius),
+        "to_world": mi.ScalarTransform4f().look_at(origin=f.eye.tolist(), target=f.target.tolist(),
+                                                   up=f.up.tolist()),
+        "near_clip": f.near,
+        "far_clip": f.far,
         "film": _film(width, height, film_extra),
         "sampler": _sampler(spp, seed),
     }

@@ -44,7 +44,8 @@ from typing import Sequence
 
 import numpy as np
 
-from usdfiber.bake.table import BcsdfTable, Grid, Recoloured
+from usdfiber.bake.grid import Grid
+from usdfiber.bake.table import BcsdfTable, Recoloured
 
 __all__ = ["Family", "FiberBank", "FiberSlot", "bilinear_integral"]
 

@@ -26,24 +26,25 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from usdfiber.bake.baker import BakeError, BakeSettings
+from usdfiber.bake.settings import BakeError, BakeSettings
 from usdfiber.bake.cache import TableCache
 from usdfiber.bake.table import BcsdfTable
 from usdfiber.bcsdf import tables_for_prim
-from usdfiber.fiber_params import FiberParams, FiberParamsError
+from usdfiber.geometry.curves import (CurveError, CurveGeometry, axis_scales, concatenate, curves_from_prim,
+                                      evaluate, reference_normals)
+from usdfiber.geometry.expanded_fibers import ExpandedFibers
+from usdfiber.geometry.yarn import BYTES_PER_POINT, ExpansionEstimate, estimate_expansion, expand_yarn
+from usdfiber.memory_budget import MemoryBudget, format_bytes
+from usdfiber.spec.fiber import FiberParams, FiberParamsError
+from usdfiber.spec.yarn import YarnError, YarnParams
 
-from usdfiber.translators.mitsuba.curves import (CurveError, CurveGeometry, concatenate, curves_from_prim, evaluate,
-                                         reference_normals)
+from usdfiber.translators.mitsuba.errors import TranslateError
 from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
-from usdfiber.translators.mitsuba.lod import CameraView, far_yarn, fiber_fraction, fiber_widening
+from usdfiber.translators.mitsuba.lod import CameraView, LodPolicy
+from usdfiber.translators.mitsuba.profile import TranslationProfile
 from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
-from usdfiber.translators.mitsuba.yarns import ExpandedFibers, YarnError, YarnParams, expand_yarn
 
-__all__ = ["FiberTranslation", "TranslateError", "fiber_prim", "translate_fibers"]
-
-
-class TranslateError(RuntimeError):
-    """A prim that cannot be rendered; the message names the prim and the attribute."""
+__all__ = ["FiberTranslation", "fiber_prim", "pixel_polyline", "translate_fibers", "yarn_polylines"]
 
 
 def fiber_prim(prim: Usd.Prim) -> bool:
@@ -110,30 +111,14 @@ def _sample_curve(geom: CurveGeometry, ss: np.ndarray, per_segment: int) -> tupl
     return np.concatenate([P, end_p]), np.concatenate([R, end_r])
 
 
-def _yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def yarn_polylines(geom: CurveGeometry, per_segment: int = 8) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Each yarn centre curve sampled densely, one curve at a time: (points (M, 3), radii (M,)),
     so that memory follows one yarn, not the whole prim."""
     for ss in _curve_segments(geom):
         yield _sample_curve(geom, ss, per_segment)
 
 
-@dataclass
-class _YarnLevels:
-    """What a yarn prim becomes: fiber curves, and the yarns drawn with their far field, either
-    as the authored curves (``far_curves``, indices) or, where the camera makes them small, as
-    polylines sampled about once per pixel (``far_lines``: points, radius)."""
-
-    fibers: CurveGeometry
-    far_curves: np.ndarray
-    far_lines: list[tuple[np.ndarray, float]]
-    stats: dict[str, int]
-
-    @property
-    def far_count(self) -> int:
-        return len(self.far_curves) + len(self.far_lines)
-
-
-def _pixel_polyline(pts: np.ndarray, spacing: float) -> np.ndarray:
+def pixel_polyline(pts: np.ndarray, spacing: float) -> np.ndarray:
     """The samples of a dense polyline about ``spacing`` apart along it (both ends kept)."""
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
@@ -146,22 +131,61 @@ def _pixel_polyline(pts: np.ndarray, spacing: float) -> np.ndarray:
     return pts[keep]
 
 
-def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, view: CameraView | None,
-                  lod_scale: float, instance_id: int) -> _YarnLevels:
-    """Expand the visible yarn curves of a prim into fiber curves (level of detail: lod.py).
+#: Bytes per fiber curve segment of a render: the expansion's peak (``BYTES_PER_POINT``), the
+#: concatenated curves and per-segment arrays (slot, psi, reference normal), and Mitsuba's own
+#: curve shape and BVH (about 170 B per segment, 1.7 GB at 1e7 segments; the field notes).
+RENDER_BYTES_PER_SEGMENT = BYTES_PER_POINT + 250
 
-    Yarns narrower than :data:`~.lod.FAR_YARN_PIXELS` / ``lod_scale`` pixels, yarns outside the
+
+@dataclass
+class _YarnPlan:
+    """What a yarn prim becomes, decided before any fiber is made: the yarns to expand
+    (segment run, fraction of fibers, estimate), the far-field yarns as authored curves
+    (``far_curves``, indices) or as polylines sampled about once per pixel (``far_lines``)."""
+
+    expand: list[tuple[int, np.ndarray, float, ExpansionEstimate]]
+    far_curves: np.ndarray
+    far_lines: list[tuple[np.ndarray, float]]
+    stats: dict[str, int]
+
+    @property
+    def far_count(self) -> int:
+        return len(self.far_curves) + len(self.far_lines)
+
+    def estimate(self, scale: float = 1.0) -> ExpansionEstimate:
+        """The fibers of every expanded yarn, with their fractions multiplied by ``scale``."""
+        total = ExpansionEstimate(0, 0)
+        for _, _, fraction, est in self.expand:
+            total = total + _scaled(est, fraction, scale)
+        return total
+
+
+def _scaled(est: ExpansionEstimate, fraction: float, scale: float) -> ExpansionEstimate:
+    """An expansion estimate at ``fraction`` scaled to ``fraction * scale`` (the counts are
+    proportional to the fraction; never below one curve)."""
+    if scale >= 1.0:
+        return est
+    k = max(scale, 1.0 / max(1.0, est.curves))
+    return ExpansionEstimate(max(1, int(math.ceil(est.curves * k))), int(math.ceil(est.points * k)))
+
+
+def _plan_yarns(geom: CurveGeometry, yarn: YarnParams, view: CameraView | None, lod_scale: float,
+                policy: LodPolicy, profile: TranslationProfile) -> _YarnPlan:
+    """Decide the level of detail of each yarn curve of a prim (lod.py), and estimate the
+    fibers of those to expand (``estimate_expansion``), without making any.
+
+    Yarns narrower than ``policy.far_yarn_pixels`` / ``lod_scale`` pixels, yarns outside the
     view (``culled``: they still cast shadows), and every yarn when ``yarn:expandFibers`` is
     false are drawn with the yarn's far field instead.
     """
-    parts = []
+    expand: list[tuple[int, np.ndarray, float, ExpansionEstimate]] = []
     far_curves: list[int] = []
     far_lines: list[tuple[np.ndarray, float]] = []
     stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0, "far": 0}
     for k, ss in enumerate(_curve_segments(geom)):
         # Two samples per segment decide visibility and size; only a yarn that is expanded
         # needs the dense centre line (a garment's far yarns would spend minutes on it).
-        pts, rad = _sample_curve(geom, ss, 2)
+        pts, rad = profile.call("centre_sampling", _sample_curve, geom, ss, 2)
         stats["yarns"] += 1
         r = float(rad.max())
         fraction = 1.0
@@ -172,35 +196,52 @@ def _expand_yarns(geom: CurveGeometry, yarn: YarnParams, fiber_diameter: float, 
                 # as a far-field proxy, sampled as if seen (leaving it out made a close-up of a
                 # weave 6 % too bright: bench/REPORT.md).
                 stats["culled"] += 1
-                far_lines.append((_pixel_polyline(pts, max(2 * r / n_px, 2 * r)), r))
+                far_lines.append((pixel_polyline(pts, max(2 * r / n_px, 2 * r)), r))
                 continue
-            if far_yarn(n_px, lod_scale=lod_scale):
+            if policy.far_yarn(n_px, lod_scale=lod_scale):
                 # A yarn this small needs no more than a sample per pixel along it (its crimp
                 # and bends are sub-pixel): a yarn of a garment seen whole shrinks from
                 # thousands of segments to its length in pixels.
-                far_lines.append((_pixel_polyline(pts, 2 * r / n_px), r))
+                far_lines.append((pixel_polyline(pts, 2 * r / n_px), r))
                 continue
-            fraction = fiber_fraction(n_px, yarn.fiber_count, lod_scale=lod_scale)
+            fraction = policy.fiber_fraction(n_px, yarn.fiber_count, lod_scale=lod_scale)
         if not yarn.expand:
             far_curves.append(int(geom.segment_curve[ss[0]]))
             continue
-        pts, rad = _sample_curve(geom, ss, 8)
-        ex = expand_yarn(pts, rad / yarn.yarn_radius, yarn, fiber_fraction=fraction,
-                         seed_offset=instance_id * 1_000_003 + k)
-        stats["fibers"] += ex.curve_count
-        stats["fibers_full"] += int(round(ex.curve_count / fraction))
-        # Fewer fibers (never fewer than half) are widened to keep the yarn's coverage (lod.py).
-        parts.append(ex.to_curve_geometry(fiber_diameter * fiber_widening(fraction)))
+        # The expansion samples the centre line 4x as densely as these samples (8 per segment).
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        est = estimate_expansion(yarn, float(seg.sum()), float(np.median(seg)) / 4.0 if len(seg) else 0.0,
+                                 fiber_fraction=fraction)
+        expand.append((k, ss, fraction, est))
     stats["far"] = len(far_curves) + len(far_lines) - stats["culled"]
-    fibers = concatenate(parts) if parts else _no_curves()
-    return _YarnLevels(fibers, np.asarray(far_curves, np.int64), far_lines, stats)
+    return _YarnPlan(expand, np.asarray(far_curves, np.int64), far_lines, stats)
+
+
+def _expand_yarns(geom: CurveGeometry, plan: _YarnPlan, yarn: YarnParams, fiber_diameter: float,
+                  instance_id: int, policy: LodPolicy, profile: TranslationProfile,
+                  scale: float = 1.0) -> CurveGeometry:
+    """The fiber curves of the yarns ``plan`` expands (:mod:`usdfiber.geometry.yarn`), each at
+    its fraction of fibers times ``scale`` (the memory budget's reduction; at least one fiber)."""
+    parts = []
+    for k, ss, fraction, _ in plan.expand:
+        if scale < 1.0:
+            fraction = max(fraction * scale, 1.0 / yarn.fiber_count)
+        pts, rad = profile.call("centre_sampling", _sample_curve, geom, ss, 8)
+        ex = profile.call("expand_yarn", expand_yarn, pts, rad / yarn.yarn_radius, yarn, fiber_fraction=fraction,
+                          seed_offset=instance_id * 1_000_003 + k)
+        plan.stats["fibers"] += ex.curve_count
+        plan.stats["fibers_full"] += int(round(ex.curve_count / fraction))
+        # Fewer fibers (never fewer than half) are widened to keep the yarn's coverage (lod.py).
+        parts.append(ex.to_curve_geometry(fiber_diameter * policy.fiber_widening(fraction)))
+    return profile.call("concatenate", concatenate, parts) if parts else _no_curves()
 
 
 def _no_curves() -> CurveGeometry:
     return CurveGeometry(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
 
 
-def _far_yarn_curves(geom: CurveGeometry, levels: _YarnLevels, yarn: YarnParams, bound_radius: float) -> CurveGeometry:
+def _far_yarn_curves(geom: CurveGeometry, levels: _YarnPlan, yarn: YarnParams, bound_radius: float,
+                     profile: TranslationProfile) -> CurveGeometry:
     """The far-field yarn curves of a prim, widened to the far field's bounding radius
     (``bound_radius`` for the nominal yarn radius; authored widths scale it)."""
     scale = bound_radius / yarn.yarn_radius
@@ -218,25 +259,35 @@ def _far_yarn_curves(geom: CurveGeometry, levels: _YarnLevels, yarn: YarnParams,
         g = ex.to_curve_geometry(1.0)
         g.radii = np.repeat([r * scale for _, r in levels.far_lines], counts + 2)
         parts.append(g)
-    return concatenate(parts)
+    return profile.call("concatenate", concatenate, parts)
 
 
 def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.TimeCode, *,
                      settings: BakeSettings, cache: TableCache | None = None, bake_missing: bool = True,
                      progress: Callable[..., Any] | None = None, view: CameraView | None = None,
-                     lod_scale: float = 1.0, yarn_settings: YarnBakeSettings | None = None) -> FiberTranslation | None:
+                     lod_scale: float = 1.0, yarn_settings: YarnBakeSettings | None = None,
+                     lod: LodPolicy | None = None, profile: TranslationProfile | None = None,
+                     memory_budget: MemoryBudget | None = None) -> FiberTranslation | None:
     """The fiber curves of ``placements`` (:class:`usdfiber.translators.mitsuba.stage_walk.Placement` of fiber
     prims) with their tables (baked with ``settings`` when missing); None without fibers.
 
-    Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.translators.mitsuba.yarns`)
-    with the level of detail of ``view`` (:mod:`usdfiber.translators.mitsuba.lod`; None: every yarn at
-    full detail); yarns too small to resolve, and those with ``yarn:expandFibers`` false, are
+    Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.geometry.yarn`)
+    with the level of detail of ``view`` (:mod:`usdfiber.translators.mitsuba.lod`, the policy ``lod``
+    scaled by ``lod_scale``; view None: every yarn at full detail); yarns too small to resolve, and those with ``yarn:expandFibers`` false, are
     drawn as one curve each with the yarn's far field (:mod:`.yarn_far_field`, traced with
     ``yarn_settings`` when missing).
 
+    Yarn fibers are estimated before any is made and kept within ``memory_budget`` (default
+    :meth:`MemoryBudget.resolve`): over it, every expanded yarn keeps the same smaller share of
+    its fibers, with a warning saying how much; when even one fiber per yarn does not fit, a
+    MemoryBudgetError gives the estimate.
+
     Raises TranslateError for prims that cannot be rendered (unresolvable fiber values,
-    malformed curves, yarn curves, tables that cannot be baked).
+    malformed curves, yarn curves, tables that cannot be baked). ``profile`` gets the time of
+    each step (:mod:`usdfiber.translators.mitsuba.profile`).
     """
+    lod = lod or LodPolicy()
+    profile = profile or TranslationProfile()
     parts: list[CurveGeometry] = []
     seg_slot: list[np.ndarray] = []
     seg_psi: list[np.ndarray] = []
@@ -252,6 +303,18 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     cache = cache or TableCache()
     far_cache = YarnFarFieldCache(cache)
     yarn_settings = yarn_settings or YarnBakeSettings()
+
+    pending: list[tuple] = []
+
+    def add_fibers(path: str, params: FiberParams, geom: CurveGeometry, slot_of_variant: np.ndarray,
+                   n_variants: int) -> None:
+        if geom.segment_count == 0:
+            return
+        variant, psi = _fiber_draws(params, path, geom.curve_count, n_variants)
+        parts.append(geom)
+        seg_slot.append(slot_of_variant[variant[geom.segment_curve]])
+        seg_psi.append(psi[geom.segment_curve])
+        prims.append(path)
 
     def slot_id(table: Any, sigma: tuple[float, ...]) -> int:
         sk = (id(table), sigma)
@@ -283,48 +346,86 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
             table_seconds += _time.perf_counter() - t0
             tables_by_key[key] = tables
             all_tables.extend(tables)
+        # Without authored widths a curve is as wide as the fiber (or yarn) in the world: the
+        # default width is divided by the transform's scale, which the conversion applies.
+        world_width = 2 * yarn.yarn_radius if yarn else params.diameter * um
+        scale = axis_scales(np.asarray(pl.xform)[:3, :3])[1]
         try:
-            geom = curves_from_prim(prim, time, pl.xform,
-                                    default_width=(2 * yarn.yarn_radius if yarn else params.diameter * um))
+            geom = profile.call("curves", curves_from_prim, prim, time, pl.xform,
+                                default_width=world_width / scale if 0 < scale < math.inf else world_width)
         except CurveError as exc:
             raise TranslateError(str(exc)) from None
         warnings.extend(geom.warnings)
         slot_of_variant = np.array([slot_id(t, tuple(float(x) for x in t.sigma_for(params.mu_a, params.diameter)))
                                     for t in tables], np.int64)
         if yarn is not None:
-            yarn_geom = geom
-            levels = _expand_yarns(yarn_geom, yarn, params.diameter * um, view, lod_scale, pl.instance_id)
-            geom = levels.fibers
-            yarn_stats.append(levels.stats)
-            if levels.far_count:
+            plan = profile.call("yarn_lod", _plan_yarns, geom, yarn, view, lod_scale, lod, profile)
+            yarn_stats.append(plan.stats)
+            if plan.far_count:
                 t0 = _time.perf_counter()
                 ff = _far_field(far_cache, pl.path, yarn, params.diameter * um,
                                 [slots[i] for i in slot_of_variant], yarn_settings, bake_missing, progress)
                 table_seconds += _time.perf_counter() - t0
-                far_geom = _far_yarn_curves(yarn_geom, levels, yarn, float(ff.header["piece"]["bound_radius"]))
+                far_geom = _far_yarn_curves(geom, plan, yarn, float(ff.header["piece"]["bound_radius"]), profile)
                 parts.append(far_geom)
                 seg_slot.append(np.full(far_geom.segment_count, slot_id(ff, (0.0, 0.0, 0.0)), np.int64))
                 seg_psi.append(np.zeros(far_geom.segment_count))
-        if geom.segment_count == 0:
-            if yarn is not None and yarn_stats[-1]["far"]:
-                prims.append(pl.path)
+            # Expanded after every prim is planned: the memory budget covers all of them.
+            pending.append((pl, params, yarn, geom, plan, slot_of_variant, len(tables)))
             continue
-        variant, psi = _fiber_draws(params, pl.path, geom.curve_count, len(tables))
-        parts.append(geom)
-        seg_slot.append(slot_of_variant[variant[geom.segment_curve]])
-        seg_psi.append(psi[geom.segment_curve])
-        prims.append(pl.path)
+        add_fibers(pl.path, params, geom, slot_of_variant, len(tables))
+
+    if pending:
+        scale = _budget_scale([p[4] for p in pending], sum(g.segment_count for g in parts),
+                              memory_budget or MemoryBudget.resolve(), warnings)
+        for pl, params, yarn, geom, plan, slot_of_variant, n_tables in pending:
+            fibers = profile.call("yarn_expansion", _expand_yarns, geom, plan, yarn, params.diameter * um,
+                                  pl.instance_id, lod, profile, scale)
+            if fibers.segment_count == 0:
+                if plan.stats["far"]:
+                    prims.append(pl.path)
+                continue
+            add_fibers(pl.path, params, fibers, slot_of_variant, n_tables)
 
     if not parts:
         return None
-    geometry = concatenate(parts)
-    bank = FiberBank.build(slots)
+    geometry = profile.call("concatenate", concatenate, parts)
+    bank = profile.call("fiber_bank", FiberBank.build, slots)
+    seg_ref = profile.call("reference_normals", reference_normals, geometry)
     return FiberTranslation(geometry=geometry, bank=bank, seg_slot=np.concatenate(seg_slot),
-                            seg_psi=np.concatenate(seg_psi), seg_ref=reference_normals(geometry),
+                            seg_psi=np.concatenate(seg_psi), seg_ref=seg_ref,
                             prims=prims, tables=all_tables, warnings=warnings,
                             table_seconds=table_seconds,
                             yarns={k: sum(d[k] for d in yarn_stats)
                                    for k in ("yarns", "culled", "fibers", "fibers_full", "far")})
+
+
+def _budget_scale(plans: list[_YarnPlan], other_segments: int, budget: MemoryBudget, warnings: list[str]) -> float:
+    """The factor on every yarn's fraction of fibers that keeps the render within ``budget``
+    (1: no reduction; a warning says how much otherwise). Raises MemoryBudgetError when one
+    fiber per yarn is still too much."""
+    def cost(scale: float) -> float:
+        pts = sum(p.estimate(scale).points for p in plans)
+        return (pts + other_segments) * RENDER_BYTES_PER_SEGMENT
+
+    full = cost(1.0)
+    if budget.fits(full):
+        return 1.0
+    # Fractions scale the counts linearly until they reach one fiber per yarn: bisect on the
+    # scale for the largest that fits.
+    least = cost(0.0)
+    n_yarns = sum(len(p.expand) for p in plans)
+    budget.require(least, f"the yarn fibers of {n_yarns} expanded yarns (one fiber per yarn, "
+                          f"{sum(p.estimate(0.0).points for p in plans)} control points)")
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if budget.fits(cost(mid)) else (lo, mid)
+    warnings.append(f"memory budget: the yarns' fibers need about {format_bytes(full)} at the view's level of "
+                    f"detail, more than the budget of {budget.describe()}; keeping {lo:.3g}x of the fibers "
+                    f"of each expanded yarn (widened to keep coverage), about {format_bytes(cost(lo))}; "
+                    f"--memory-budget raises the budget")
+    return lo
 
 
 def _far_field(far_cache: YarnFarFieldCache, path: str, yarn: YarnParams, fiber_diameter: float,

@@ -31,8 +31,8 @@ property ``fiber_pass`` false): as ``volpath``, the BSDF decides in ``sample`` a
 with the full ``eval`` and ``pdf`` (both carry the factor ``q``). Fibers (the default when the
 scene's only BSDF with a ``Null`` component is one :func:`~usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf`
 instance, as ``translate_stage`` makes): the integrator asks that BSDF for ``q`` at the hit
-(its own ``_q``, the number ``eval``, ``pdf`` and ``sample`` use) and decides with a sample of
-its own, in a short loop that only intersects and looks up ``q`` until a fiber scatters or the
+(``fiber.scatter_probability_at``, the number ``eval``, ``pdf`` and ``sample`` use) and
+decides with a sample of its own, in a short loop that only intersects and looks up ``q`` until a fiber scatters or the
 ray hits something else. At a scattering fiber the BSDF is then used conditioned on
 scattering: sampled and its pdf taken with the ``Null`` component off (no ``q`` in them),
 and ``eval`` divided by ``q``. Both give the same expectation, ``q f + (1 - q) delta``; the
@@ -71,7 +71,7 @@ class _Null:
         self.shapes = shapes    # shapes whose BSDF has a Null component; None: tell by BSDF flags
         self.bsdfs = bsdfs      # their distinct BSDFs
         self.flags = flags      # RayFlags of the interaction their null transmission needs
-        self.fiber = fiber      # the one fiber BSDF, when the fiber way decides pass-throughs
+        self.fiber = fiber      # the one fiber BSDF plugin, when the fiber way decides pass-throughs
 
 
 def _null_shapes(mi: Any, scene: Any) -> tuple[list, list, bool]:
@@ -116,14 +116,13 @@ def _on_shapes(shape_ptr: Any, shapes: list) -> Any:
 
 def _fiber_q(null: _Null, si: Any, active: Any) -> tuple[Any, Any]:
     """(on a fiber, q): the probability that the fiber BSDF scatters at a hit (1 elsewhere),
-    the number its eval, pdf and sample use (``FiberBcsdf._q`` at the hit's frame)."""
+    the number its eval, pdf and sample use (:meth:`FiberBcsdf.scatter_probability_at
+    <usdfiber.translators.mitsuba.fiber_bsdf.FiberBcsdf.scatter_probability_at>`)."""
     import drjit as dr
 
-    fib = null.fiber
-    on = _on_shapes(si.shape, null.shapes) & si.is_valid() & active & fib._finite(si)
-    t, x, y, slot = fib._frame(si, on)
-    th_v, ph_v = fib._angles(si.to_world(si.wi), t, x, y)
-    return on, dr.select(on, fib._q(slot, th_v, ph_v, on), 1.0)
+    fib = null.fiber.fiber
+    on = _on_shapes(si.shape, null.shapes) & si.is_valid() & active & fib.hit_is_finite(si)
+    return on, dr.select(on, fib.scatter_probability_at(si, on), 1.0)
 
 
 def integrator_class(mi: Any) -> type:

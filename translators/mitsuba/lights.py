@@ -65,16 +65,16 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
 
-from usdfiber.fiber_params import _CIE_1931, _CIE_START_NM, _CIE_STEP_NM, _XYZ_TO_REC709
+from usdfiber.colour import blackbody_rgb
 
-from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode, to_mi_transform
+from usdfiber.translators.mitsuba.errors import TranslationError
+from usdfiber.translators.mitsuba.images import load_image
+from usdfiber.translators.mitsuba.render_settings import as_timecode, to_mi_transform
 
 __all__ = [
-    "blackbody_rgb",
     "default_light",
     "light_emitter",
     "light_radiance",
-    "load_image",
 ]
 
 # 180 degrees about X: Mitsuba's +Z-facing rectangle/disk -> UsdLux's -Z emission.
@@ -84,60 +84,6 @@ _POLE_Y_TO_Z = np.array([[1.0, 0.0, 0.0, 0.0],
                          [0.0, 0.0, 1.0, 0.0],
                          [0.0, -1.0, 0.0, 0.0],
                          [0.0, 0.0, 0.0, 1.0]])
-
-_C2 = 1.4387769e-2  # second radiation constant h c / k_B, m K
-
-
-def blackbody_rgb(kelvin: float) -> np.ndarray:
-    """Linear Rec.709 RGB of a blackbody at ``kelvin``, normalized to luminance (Y) 1.
-
-    Planck's law sampled at the CIE 1931 2-degree colour matching functions (380-780 nm,
-    10 nm), XYZ -> linear Rec.709 (D65), negative components clipped to 0, then scaled to
-    Y = 0.2126 R + 0.7152 G + 0.0722 B = 1. 6504 K is white within ~2 % (a blackbody is not
-    exactly D65); USD's ``UsdLuxBlackbodyTemperatureAsRgb`` (a fitted table) agrees within a
-    few percent over 1000-10000 K.
-    """
-    if not kelvin > 0:
-        raise ValueError(f"blackbody temperature must be > 0 K, got {kelvin}")
-    cmf = np.asarray(_CIE_1931, dtype=np.float64)
-    lam = (_CIE_START_NM + _CIE_STEP_NM * np.arange(len(cmf))) * 1e-9
-    # Planck up to a constant factor (cancels in the normalization); exp overflow -> 0.
-    with np.errstate(over="ignore"):
-        spd = lam ** -5 / np.expm1(_C2 / (lam * kelvin))
-    xyz = spd @ cmf
-    rgb = np.maximum(np.asarray(_XYZ_TO_REC709) @ xyz, 0.0)
-    lum = float(rgb @ np.array([0.2126, 0.7152, 0.0722]))
-    return rgb / lum
-
-
-def load_image(path: str, color_space: str = "auto", where: str = "") -> np.ndarray:
-    """Read an image with OpenImageIO as linear float32 (H, W, C), row 0 = top.
-
-    ``color_space`` follows UsdUVTexture ``sourceColorSpace``: ``raw`` keeps the values,
-    ``sRGB`` decodes the sRGB transfer function on the colour channels (not alpha), ``auto``
-    decodes when the file is 8-bit with 3 or 4 channels (the UsdPreviewSurface rule, as in
-    Hydra's Hio). Raises :class:`TranslationError` naming ``where`` if it cannot be read.
-    """
-    import OpenImageIO as oiio
-
-    buf = oiio.ImageBuf(path)
-    if buf.has_error:
-        raise TranslationError(where or path, None, f"cannot read image {path!r}: {buf.geterror()}")
-    spec = buf.spec()
-    pixels = buf.get_pixels(oiio.FLOAT)
-    if pixels is None or buf.has_error:
-        raise TranslationError(where or path, None, f"cannot read image {path!r}: {buf.geterror()}")
-    data = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-    cs = color_space.lower()
-    if cs == "auto":
-        cs = "srgb" if spec.format.basetype == oiio.UINT8 and spec.nchannels in (3, 4) else "raw"
-    if cs == "srgb":
-        n = min(3, data.shape[2]) if data.shape[2] != 2 else 1
-        c = data[..., :n]
-        data[..., :n] = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    elif cs != "raw":
-        raise TranslationError(where or path, None, f"unknown source colour space {color_space!r}")
-    return data
 
 
 def _get(attr: Usd.Attribute, tc: Usd.TimeCode, default: Any = None) -> Any:

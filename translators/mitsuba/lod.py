@@ -7,15 +7,19 @@ detail"):
 * **Culling**: a yarn curve whose bounding box (grown by its radius) misses the camera's
   view frustum produces no fibers: it stays as a far-field proxy (below), so that it still
   shadows and lights the view (+0.3 % in the image mean).
+The numbers of the steps are a :class:`LodPolicy` (carried in the scene options,
+:class:`~usdfiber.translators.mitsuba.scene.SceneOptions` ``lod``); its defaults are the
+measured constants below, and benchmarks try other policies through it.
+
 * **Far yarns**: a yarn narrower than :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels is not
   expanded at all: it is drawn as one curve with the yarn's far field, traced once through its
   fibers (:mod:`.yarn_far_field`; +2.8 % in the mean at 0.9 px, -0.1 % at 2.8 px).
 * **Fewer fibers** (the middle step, yarns of :data:`FAR_YARN_PIXELS` / ``lod_scale`` pixels
   and more): a yarn whose diameter covers ``n_px`` pixels keeps the fraction
   ``min(1, max(MIN_FIBER_FRACTION, lod_scale * FIBERS_PER_PIXEL * n_px / fibers))`` of its
-  fibers (and at least ``min_fibers``), a deterministic subset (:func:`expand_yarn`'s
-  ``fiber_fraction``); flyaways follow the same fraction. Kept fibers are widened by
-  ``fraction ** -WIDEN_EXPONENT`` (:func:`fiber_widening`); their optics (diameter, absorption,
+  fibers (and at least ``min_fibers``, :meth:`LodPolicy.fiber_fraction`), a deterministic subset
+  (``expand_yarn``'s ``fiber_fraction``); flyaways follow the same fraction. Kept fibers are widened by
+  ``fraction ** -WIDEN_EXPONENT`` (:meth:`LodPolicy.fiber_widening`); their optics (diameter, absorption,
   tables) are unchanged. With the floor of half the fibers and widening by ``1 / fraction``
   the yarn keeps its coverage; what it loses is some of the light scattered between its
   fibers, so the image is slightly too bright: +3.8 % in the mean at 6.3 px and +1.1 % at
@@ -33,8 +37,10 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-__all__ = ["CameraView", "FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "MIN_FIBER_FRACTION", "WIDEN_EXPONENT", "camera_view",
-           "far_yarn", "fiber_fraction", "fiber_widening"]
+from usdfiber.translators.mitsuba.camera import DefaultFraming
+
+__all__ = ["CameraView", "FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "LodPolicy", "MIN_FIBER_FRACTION", "WIDEN_EXPONENT",
+           "camera_view", "default_view"]
 
 #: Fibers kept per pixel of yarn diameter at lod_scale 1 (a pixel resolves about this many
 #: fiber highlights across a yarn).
@@ -86,7 +92,23 @@ class CameraView:
 
 def camera_view(cam_prim: Usd.Prim, time: Usd.TimeCode, width: int, height: int) -> CameraView:
     """The view of a UsdGeom.Camera rendered at ``width`` x ``height`` pixels."""
-    gc = UsdGeom.Camera(cam_prim).GetCamera(time)
+    return _view_of(UsdGeom.Camera(cam_prim).GetCamera(time), width, height)
+
+
+def default_view(framing: DefaultFraming, width: int, height: int) -> CameraView:
+    """The view of the default camera of a stage without one (``camera.default_framing``):
+    level of detail applies to it as to an authored camera."""
+    gc = Gf.Camera()
+    gc.transform = Gf.Matrix4d().SetLookAt(Gf.Vec3d(*map(float, framing.eye)), Gf.Vec3d(*map(float, framing.target)),
+                                           Gf.Vec3d(*map(float, framing.up))).GetInverse()
+    # The field of view spans the smaller image axis.
+    direction = Gf.Camera.FOVHorizontal if width <= height else Gf.Camera.FOVVertical
+    gc.SetPerspectiveFromAspectRatioAndFieldOfView(width / height, framing.fov, direction)
+    gc.clippingRange = Gf.Range1f(float(framing.near), float(framing.far))
+    return _view_of(gc, width, height)
+
+
+def _view_of(gc: Gf.Camera, width: int, height: int) -> CameraView:
     frustum = gc.frustum
     # The image's aspect ratio decides the window: grow the aperture to fit it, as the
     # camera translator's default conform policy (expandAperture) does.
@@ -111,22 +133,39 @@ def camera_view(cam_prim: Usd.Prim, time: Usd.TimeCode, width: int, height: int)
     return CameraView(frustum, pos, fwd, 2.0 * cw / width, 0.0)
 
 
-def fiber_fraction(yarn_pixels: float, fibers: int, *, lod_scale: float = 1.0, min_fibers: int = 8) -> float:
-    """Fraction of a yarn's fibers to expand when its diameter covers ``yarn_pixels`` pixels:
-    ``FIBERS_PER_PIXEL * yarn_pixels * lod_scale`` fibers, never fewer than
-    :data:`MIN_FIBER_FRACTION` of them nor fewer than ``min_fibers``."""
-    if lod_scale <= 0 or fibers <= 0:
-        return 1.0
-    keep = max(float(min_fibers), MIN_FIBER_FRACTION * fibers, lod_scale * FIBERS_PER_PIXEL * yarn_pixels)
-    return float(min(1.0, keep / fibers))
+@dataclass(frozen=True)
+class LodPolicy:
+    """The numbers of the level-of-detail steps (module docstring); the defaults are the
+    measured constants of this module. ``lod_scale`` (``usdfiber render --lod-scale``) is
+    the user's knob on top of a policy; 0 turns the reduction off."""
 
+    fibers_per_pixel: float = FIBERS_PER_PIXEL       # fibers kept per pixel of yarn diameter
+    far_yarn_pixels: float = FAR_YARN_PIXELS         # narrower yarns are drawn with their far field
+    min_fiber_fraction: float = MIN_FIBER_FRACTION   # the middle step's floor
+    widen_exponent: float = WIDEN_EXPONENT           # kept fibers are widened by fraction ** -exponent
 
-def fiber_widening(fraction: float) -> float:
-    """Factor by which the kept fibers of a yarn expanded at ``fraction`` are widened:
-    ``fraction ** -WIDEN_EXPONENT``."""
-    return float(fraction) ** -WIDEN_EXPONENT
+    def __post_init__(self) -> None:
+        if not (self.fibers_per_pixel > 0 and self.far_yarn_pixels >= 0 and 0 < self.min_fiber_fraction <= 1
+                and math.isfinite(self.widen_exponent)):
+            raise ValueError(f"LodPolicy: expected fibers_per_pixel > 0, far_yarn_pixels >= 0, "
+                             f"0 < min_fiber_fraction <= 1 and a finite widen_exponent, got {self}")
 
+    def fiber_fraction(self, yarn_pixels: float, fibers: int, *, lod_scale: float = 1.0,
+                       min_fibers: int = 8) -> float:
+        """Fraction of a yarn's fibers to expand when its diameter covers ``yarn_pixels`` pixels:
+        ``fibers_per_pixel * yarn_pixels * lod_scale`` fibers, never fewer than
+        ``min_fiber_fraction`` of them nor fewer than ``min_fibers``."""
+        if lod_scale <= 0 or fibers <= 0:
+            return 1.0
+        keep = max(float(min_fibers), self.min_fiber_fraction * fibers,
+                   lod_scale * self.fibers_per_pixel * yarn_pixels)
+        return float(min(1.0, keep / fibers))
 
-def far_yarn(yarn_pixels: float, *, lod_scale: float = 1.0) -> bool:
-    """Whether a yarn whose diameter covers ``yarn_pixels`` pixels is drawn with its far field."""
-    return lod_scale > 0 and yarn_pixels * lod_scale < FAR_YARN_PIXELS
+    def fiber_widening(self, fraction: float) -> float:
+        """Factor by which the kept fibers of a yarn expanded at ``fraction`` are widened:
+        ``fraction ** -widen_exponent``."""
+        return float(fraction) ** -self.widen_exponent
+
+    def far_yarn(self, yarn_pixels: float, *, lod_scale: float = 1.0) -> bool:
+        """Whether a yarn whose diameter covers ``yarn_pixels`` pixels is drawn with its far field."""
+        return lod_scale > 0 and yarn_pixels * lod_scale < self.far_yarn_pixels

@@ -68,8 +68,9 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom, UsdShade
 
-from usdfiber.translators.mitsuba.lights import load_image
-from usdfiber.translators.mitsuba.render_settings import TranslationError, as_timecode
+from usdfiber.translators.mitsuba.errors import TranslationError
+from usdfiber.translators.mitsuba.images import load_image
+from usdfiber.translators.mitsuba.render_settings import as_timecode
 
 __all__ = ["MaterialInfo", "material_bsdf", "mesh_shape", "mesh_shapes"]
 

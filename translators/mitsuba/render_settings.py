@@ -1,7 +1,7 @@
 """Stage-level render settings (``UsdRender.Settings``) and world bounds for translation.
 
-Also holds the small helpers the other translator modules share: :class:`TranslationError`,
-time-code coercion and the USD -> Mitsuba matrix conversion.
+Also holds the small helpers the other translator modules share: time-code coercion and the
+USD -> Mitsuba matrix conversion (the errors are in :mod:`usdfiber.translators.mitsuba.errors`).
 
 How the samples per pixel are specified
 ---------------------------------------
@@ -19,10 +19,11 @@ from typing import Iterable
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
 
+from usdfiber.translators.mitsuba.errors import TranslationError
+
 __all__ = [
     "RenderSettingsInfo",
     "SPP_ATTR",
-    "TranslationError",
     "as_timecode",
     "read_render_settings",
     "stage_bbox",
@@ -31,16 +32,6 @@ __all__ = [
 
 #: Custom attribute (on a RenderSettings or RenderProduct prim) holding samples per pixel.
 SPP_ATTR = "usdfiber:samplesPerPixel"
-
-
-class TranslationError(ValueError):
-    """A USD value that cannot be translated; the message names the prim and attribute."""
-
-    def __init__(self, prim: str | Sdf.Path, attribute: str | None, reason: str) -> None:
-        self.prim = str(prim)
-        self.attribute = attribute
-        where = f"{self.prim}.{attribute}" if attribute else self.prim
-        super().__init__(f"{where}: {reason}")
 
 
 def as_timecode(time: Usd.TimeCode | float | None) -> Usd.TimeCode:

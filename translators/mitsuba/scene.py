@@ -6,7 +6,7 @@ native instances and point instancers expanded by :mod:`usdfiber.translators.mit
 * fiber curves (BasisCurves with FiberAPI): one B-spline shape with one tabulated-BCSDF
   instance for all of them (:mod:`usdfiber.translators.mitsuba.fibers`); missing tables are baked first;
   yarn curves (FiberYarnAPI) are expanded into fibers where the camera sees them, at the
-  detail it resolves (:mod:`usdfiber.translators.mitsuba.yarns`, :mod:`usdfiber.translators.mitsuba.lod`);
+  detail it resolves (:mod:`usdfiber.geometry.yarn`, :mod:`usdfiber.translators.mitsuba.lod`);
 * other BasisCurves: B-spline curves with a grey diffuse BSDF (a warning names them);
 * meshes with their UsdPreviewSurface materials (:mod:`usdfiber.translators.mitsuba.meshes`);
 * UsdLux lights (:mod:`usdfiber.translators.mitsuba.lights`), or a documented default rig when the stage has
@@ -25,27 +25,28 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdLux
 
 from usdfiber.backend import mitsuba
-from usdfiber.bake.baker import BakeSettings
+from usdfiber.bake.settings import RENDER_BAKE_SETTINGS, BakeSettings
 from usdfiber.bake.cache import TableCache
+from usdfiber.memory_budget import MemoryBudget
+from usdfiber.stage_io import default_render_time, stage_metrics_problems
 
-from usdfiber.translators.mitsuba.camera import camera_sensor, default_camera
+from usdfiber.translators.mitsuba.camera import camera_sensor, default_camera, default_framing
 from usdfiber.translators.mitsuba.curves import CurveError, concatenate, curves_from_prim, make_curve_shape
 from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
-from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
-from usdfiber.translators.mitsuba.fibers import FiberTranslation, TranslateError, fiber_prim, translate_fibers
+from usdfiber.translators.mitsuba.errors import TranslateError, TranslationError
+from usdfiber.translators.mitsuba.fibers import FiberTranslation, fiber_prim, translate_fibers
+from usdfiber.translators.mitsuba.fitted_models import check_render_model, fitted_fiber_shapes
 from usdfiber.translators.mitsuba.lights import default_light, light_emitter
-from usdfiber.translators.mitsuba.lod import camera_view
+from usdfiber.translators.mitsuba.lod import LodPolicy, camera_view, default_view
 from usdfiber.translators.mitsuba.meshes import mesh_shapes
-from usdfiber.translators.mitsuba.render_settings import RenderSettingsInfo, TranslationError, read_render_settings, stage_bbox
+from usdfiber.translators.mitsuba.profile import TranslationProfile
+from usdfiber.translators.mitsuba.render_settings import RenderSettingsInfo, read_render_settings, stage_bbox
 from usdfiber.translators.mitsuba.stage_walk import walk
+from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
 
-__all__ = ["RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "TranslateError", "fiber_integrator", "translate_stage"]
+__all__ = ["AOVS", "RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "aov_integrator", "fiber_integrator",
+           "translate_stage"]
 
-#: Bake settings for tables baked on demand by a render: a 6 degree grid (the renderer
-#: interpolates between bins) and 100k photons per incoming direction (2.5-7 % relative L2
-#: error per direction, rms over the table, for the presets: bench/REPORT.md, "grouping").
-#: `usdfiber bake` makes the paper's 2 degree tables.
-RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
 
 DEFAULT_RESOLUTION = (960, 540)
 DEFAULT_SPP = 64
@@ -68,6 +69,31 @@ def fiber_integrator(mi: Any, bsdf: Any) -> str:
     return "path"
 
 
+#: The AOV layers a render can add to its image (``--aov``): layer name -> (Mitsuba ``aov``
+#: integrator type, channel names in the image). ``albedo`` is the first surface's
+#: reflectance (a fiber's: the BSDF's value towards its normal, times pi), ``normal`` its
+#: shading normal and ``position`` its point in world space (Mitsuba's world: the stage's
+#: with Z up), ``depth`` the distance along the camera ray (scene units, from the camera; from
+#: the near clipping plane for orthographic cameras, where rays start); 0 where the ray meets
+#: nothing. Like the colour, they are averaged over the pixel's samples with the film's filter.
+AOVS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "albedo": ("albedo", ("albedo.R", "albedo.G", "albedo.B")),
+    "normal": ("sh_normal", ("normal.X", "normal.Y", "normal.Z")),
+    "depth": ("depth", ("depth.Z",)),
+    "position": ("position", ("position.X", "position.Y", "position.Z")),
+}
+
+
+def aov_integrator(inner: dict[str, Any], aovs: tuple[str, ...]) -> dict[str, Any]:
+    """Mitsuba's ``aov`` integrator around ``inner``, adding the layers ``aovs`` (keys of
+    :data:`AOVS`, in that order in the image); ValueError names an unknown one."""
+    unknown = [a for a in aovs if a not in AOVS]
+    if unknown:
+        raise ValueError(f"unknown AOV(s) {', '.join(unknown)}; valid: {', '.join(AOVS)}")
+    spec = ",".join(f"{a}:{AOVS[a][0]}" for a in aovs)
+    return {"type": "aov", "aovs": spec, "image": inner}
+
+
 @dataclass
 class SceneOptions:
     """How to translate: time code, image, camera, integrator and table settings."""
@@ -86,6 +112,15 @@ class SceneOptions:
     pass_through: bool = True
     lod_scale: float = 1.0                      # yarn level of detail (lod.py); 0: every fiber
     yarn_bake: YarnBakeSettings = field(default_factory=YarnBakeSettings)  # far fields of small yarns
+    lod: LodPolicy = field(default_factory=LodPolicy)  # the level-of-detail steps' numbers
+    profile: TranslationProfile | None = None   # times the steps; None: a fresh profile
+    cloth: str = "fibers"                       # fibers | volume | auto (volume/scene.py)
+    voxels_per_pixel: float = 1.0               # volumes: voxels per pixel footprint
+    voxel_size: float | None = None             # volumes: voxel edge (scene units), overrides the footprint
+    memory_budget: MemoryBudget | None = None   # yarn expansion's budget; None: MemoryBudget.resolve()
+    alpha: bool = False                         # film with an alpha channel (R, G, B, A)
+    aovs: tuple[str, ...] = ()                  # AOV layers (AOVS), after R, G, B(, A)
+    model: str = "table"                        # fiber model: table | chiang | khungurn (fitted_models.py)
 
 
 @dataclass
@@ -100,6 +135,8 @@ class Translation:
     counts: dict[str, int] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     times: dict[str, float] = field(default_factory=dict)
+    profile: TranslationProfile = field(default_factory=TranslationProfile)  # time per step
+    time: float | None = None        # the time code translated (None: the default time)
 
 
 def _timecode(t: float | None) -> Usd.TimeCode:
@@ -134,9 +171,21 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     """
     mi = mitsuba()
     opt = options or SceneOptions()
+    try:
+        check_render_model(opt.model)
+    except ValueError as exc:
+        raise TranslateError(str(exc)) from None
+    prof = opt.profile or TranslationProfile()
     tc = _timecode(opt.time)
     warnings: list[str] = []
     times: dict[str, float] = {}
+    for problem in stage_metrics_problems(stage):  # what `usdfiber check` says of them
+        raise TranslateError(problem.message)
+    if opt.time is None:
+        picked = default_render_time(stage)  # an animated-only stage shows nothing at default
+        if picked is not None:
+            tc = Usd.TimeCode(picked[0])
+            warnings.append(picked[1])
     try:
         settings = read_render_settings(stage, opt.render_settings)
     except TranslationError as exc:
@@ -168,18 +217,53 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     entries: dict[str, Any] = {"type": "scene"}
     cam = _find_camera(stage, opt.camera, settings)
     w, h = resolution
-    view = camera_view(cam, tc, w, h) if cam is not None else None
+    up = UsdGeom.GetStageUpAxis(stage)
+    if cam is not None:
+        view = camera_view(cam, tc, w, h)
+    else:
+        # No camera: the default camera frames the visible geometry, and level of detail
+        # follows that framing as it would an authored camera's.
+        bbox = stage_bbox(stage, tc, purposes)
+        lo, hi = bbox if bbox is not None else (np.full(3, -1.0), np.full(3, 1.0))
+        view = default_view(default_framing(lo, hi, up_axis=up), w, h)
+    # ---- volumetric cloth (--cloth volume|auto): volume/scene.py --------------------------
+    volumes = None
+    if opt.cloth != "fibers":
+        from usdfiber.translators.mitsuba.volume.scene import split_cloth, translate_volumes
+
+        vol_placements, fiber_placements, choices = split_cloth(fiber_placements, opt.cloth, view, tc, opt.lod_scale)
+        warnings.extend(f"cloth: {c}" for c in choices)
+        if vol_placements:
+            volumes, kept = translate_volumes(mi, vol_placements, stage, tc, settings=opt.bake, cache=opt.cache,
+                                              bake_missing=opt.bake_missing, progress=progress, view=view,
+                                              voxels_per_pixel=opt.voxels_per_pixel, voxel_size=opt.voxel_size)
+            fiber_placements = fiber_placements + kept
+            entries.update(volumes.entries)
+            warnings.extend(volumes.warnings)
     fibers = translate_fibers(fiber_placements, stage, tc, settings=opt.bake, cache=opt.cache,
                               bake_missing=opt.bake_missing, progress=progress, view=view,
-                              lod_scale=opt.lod_scale, yarn_settings=opt.yarn_bake)
+                              lod_scale=opt.lod_scale, yarn_settings=opt.yarn_bake, lod=opt.lod, profile=prof,
+                              memory_budget=opt.memory_budget)
     times["tables"] = fibers.table_seconds if fibers is not None else 0.0
+    if volumes is not None:
+        times["tables"] += volumes.table_seconds
     counts = {"fiber_prims": len(fiber_placements), "fiber_curves": 0, "fiber_segments": 0,
               "curves_other": 0, "meshes": 0, "lights": 0}
+    if volumes is not None:
+        counts.update(volumes.counts)
     if fibers is not None:
         warnings.extend(fibers.warnings)
-        bsdf = fiber_bsdf(mi, fibers.bank, fibers.seg_slot, fibers.seg_psi, fibers.seg_ref,
-                          pass_through=opt.pass_through)
-        entries["fibers"] = make_curve_shape(fibers.geometry, bsdf, "fibers")
+        if opt.model == "table":
+            bsdf = prof.call("bsdf", fiber_bsdf, mi, fibers.bank, fibers.seg_slot, fibers.seg_psi, fibers.seg_ref,
+                             pass_through=opt.pass_through)
+            entries["fibers"] = prof.call("curve_shape", make_curve_shape, fibers.geometry, bsdf, "fibers")
+        else:
+            # A fitted standard model instead of the table (Aliaga et al. Figures 9, 10).
+            t_fit = _time.perf_counter()
+            shapes, _ = fitted_fiber_shapes(mi, fibers, opt.model)
+            times["tables"] += _time.perf_counter() - t_fit
+            entries.update(shapes)
+            bsdf = None   # opaque fitted models: the plain path tracer
         counts["fiber_curves"] = fibers.curve_count
         counts["fiber_segments"] = fibers.segment_count
         counts["fiber_slots"] = len(fibers.bank.slots)
@@ -189,17 +273,20 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     if other_curves:
         parts = []
         for pl in other_curves:
+            # Plain curves (guides, hair) are extras: one that cannot be drawn is skipped with a
+            # warning, as `usdfiber check` warns (usdfiber.validation.plain_curves).
             try:
                 g = curves_from_prim(pl.prim, tc, pl.xform)
-            except CurveError as exc:
-                raise TranslateError(str(exc)) from None
+            except (CurveError, ValueError) as exc:
+                warnings.append(f"{pl.path}: BasisCurves without FiberAPI skipped: {exc}")
+                continue
             warnings.extend(g.warnings)
             parts.append(g)
             warnings.append(f"{pl.path}: BasisCurves without FiberAPI rendered with a grey diffuse BSDF")
         geom = concatenate(parts)
         if geom.segment_count:
-            entries["curves"] = make_curve_shape(
-                geom, mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.18}}), "curves")
+            entries["curves"] = prof.call("curve_shape", make_curve_shape, geom, mi.load_dict(
+                {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.18}}), "curves")
             counts["curves_other"] = geom.curve_count
     for k, pl in enumerate(meshes):
         try:
@@ -224,10 +311,9 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
             n_lights += 1
     counts["lights"] = n_lights
     # The stage's bounds only matter to the defaults: no traversal for them otherwise.
-    if n_lights == 0 or cam is None:
+    if n_lights == 0 and cam is not None:
         bbox = stage_bbox(stage, tc, purposes)
         lo, hi = bbox if bbox is not None else (np.full(3, -1.0), np.full(3, 1.0))
-    up = UsdGeom.GetStageUpAxis(stage)
     if n_lights == 0:
         for k, e in enumerate(default_light(lo, hi, up_axis=up)):
             entries[f"default_light_{k}"] = e
@@ -235,22 +321,29 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
                         "and a distant key light of irradiance pi)")
 
     # ---- camera ---------------------------------------------------------------------------
+    film_extra = {"pixel_format": "rgba"} if opt.alpha or opt.aovs else None
     if cam is not None:
         xf = np.array(UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), dtype=np.float64)
         try:
-            entries["sensor"] = camera_sensor(cam, xf, tc, w, h, spp=spp, seed=opt.seed,
+            entries["sensor"] = camera_sensor(cam, xf, tc, w, h, spp=spp, seed=opt.seed, film_extra=film_extra,
                                               conform_policy=settings.aspect_ratio_conform_policy,
                                               depth_of_field=not settings.disable_depth_of_field)
         except TranslationError as exc:
             raise TranslateError(str(exc)) from None
         cam_name = str(cam.GetPath())
     else:
-        entries["sensor"] = default_camera(lo, hi, w, h, spp=spp, seed=opt.seed, up_axis=up)
+        entries["sensor"] = default_camera(lo, hi, w, h, spp=spp, seed=opt.seed, up_axis=up, film_extra=film_extra)
         cam_name = "default"
         warnings.append("the stage has no camera: using a default camera that frames the visible geometry")
     entries["integrator"] = {"type": fiber_integrator(mi, bsdf if fibers is not None else None),
                              "max_depth": int(opt.max_depth)}
-    scene = mi.load_dict(entries)
+    if volumes is not None:
+        # Media need volpath (it also passes shadow rays through non-round fibers).
+        entries["integrator"]["type"] = "volpath"
+    if opt.aovs:
+        entries["integrator"] = aov_integrator(entries["integrator"], opt.aovs)
+    scene = prof.call("scene", mi.load_dict, entries)
     times["translate"] = _time.perf_counter() - t0 - times["tables"]
     return Translation(scene=scene, resolution=(w, h), spp=int(spp), camera=cam_name, fibers=fibers,
-                       counts=counts, warnings=warnings, times=times)
+                       counts=counts, warnings=warnings, times=times, profile=prof,
+                       time=None if tc.IsDefault() else tc.GetValue())

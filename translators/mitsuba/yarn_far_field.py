@@ -5,7 +5,7 @@ says, light bouncing between them. Seen from afar it is itself a "fiber" with a 
 scattering function, exactly as a fiber is an aggregate of refractions inside its cross
 section (the paper's Section 3; its Figure 8 shows that averaged BCSDFs keep a yarn's look).
 This module measures that function by the same brute-force photon tracing as the baker, one
-level up: the photons walk through the yarn's expanded fibers (:mod:`.yarns`), and every
+level up: the photons walk through the yarn's expanded fibers (:mod:`usdfiber.geometry.yarn`), and every
 interaction with a fiber samples the fiber's own tabulated BCSDF (the renderer's
 :mod:`.fiber_bsdf`: its variants, random rotations psi, colour and pass-through). The result,
 a :class:`YarnFarField`, has the layout of a rotationally symmetric fiber table, so the
@@ -50,7 +50,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from usdfiber import table_format
-from usdfiber.bake.table import Grid, Recoloured
+from usdfiber.bake.cache import load_or_make
+from usdfiber.bake.grid import Grid
+from usdfiber.bake.table import Recoloured
 
 __all__ = ["YarnBakeSettings", "YarnFarField", "YarnFarFieldCache", "bake_yarn_far_field",
            "trace_far_field", "yarn_piece"]
@@ -178,7 +180,7 @@ def yarn_piece(params: Any, fiber_diameter: float, settings: YarnBakeSettings, s
     segments lie outside it (the tracer only sees the fibers between the ends; staple fibers
     still end inside, as they do in the yarn).
     """
-    from usdfiber.translators.mitsuba.yarns import expand_yarn
+    from usdfiber.geometry.yarn import expand_yarn
 
     r_guess = params.max_fiber_distance + 0.5 * fiber_diameter
     lz = settings.length_diameters * 2.0 * r_guess
@@ -474,15 +476,13 @@ class YarnFarFieldCache:
         """(far field, whether it was traced now); (None, False) if missing and not baking."""
         st = settings or YarnBakeSettings()
         key = _key(far_field_inputs(params, fiber_diameter, slots, st))
-        ff = self.load(key)
-        if ff is not None or not bake_missing:
-            return ff, False
-        with self.tables.lock("yarn-" + key):
-            ff = self.load(key)
-            if ff is not None:
-                return ff, False
+
+        def make() -> YarnFarField:
             ff = bake_yarn_far_field(params, fiber_diameter, slots, st, progress)
             path = self.path(key)
             path.parent.mkdir(parents=True, exist_ok=True)
             ff.save(path)
-            return ff, True
+            return ff
+
+        return load_or_make(lambda: self.load(key), lambda: self.tables.lock("yarn-" + key), make,
+                            make_missing=bake_missing)

@@ -11,37 +11,81 @@ The key is the sha256 of the canonical JSON of: the fiber's geometry inputs
 (``FiberParams.geometry_inputs()``: everything that changes traced photon paths, not the
 dye, depth of shade or diameter, which only recolour), the cross-section variant index, the
 bake settings that change the result (:meth:`BakeSettings.result_inputs`) and the table
-format and layout versions. Two prims that differ only in dye share a key.
+format and layout versions. Two prims that differ only in dye share a key. The settings enter
+with canonical types (``resolution_deg=10`` and ``10.0`` are one key; keys of tables baked
+before are unchanged). A table names its key in its header and is refused under any other.
+When a key's table is missing, any cached table of the same physics (:func:`physics_key`:
+every input but the :data:`QUALITY_SETTINGS`) that is at least as good (:func:`serves`: as
+fine a grid, as many photons per direction) is used instead: tables made by ``usdfiber bake``
+serve a render's requests whatever their batches. File-system failures (a read-only or full
+disk, a directory or file in the wrong place) raise :class:`TableCacheError`, one line naming
+the path; tables are written atomically, so a failed write leaves no half-written table.
 
 Concurrency: a baker holds the key's lock (``filelock``, an OS lock released when the
 process dies) while it checks and bakes; a second baker of the same key waits and then
 finds the finished table. Tables are written atomically (temporary file + rename) and read
 with every checksum verified: a truncated or corrupt file is reported (a
 :class:`TableCacheWarning` naming the file and the reason), deleted and baked again, never
-used. An interrupted bake keeps its finished directions in ``partial/<key>/``; the next
-bake of the key resumes from them and removes the directory when the table is written.
+used. An interrupted bake keeps its finished directions in ``partial/<key>/``
+(:mod:`usdfiber.bake.chunks`); the next bake of the key resumes from them and removes the
+directory when the table is written.
+
+Every kind of file kept under a cache root (tables here, yarn far fields in the Mitsuba
+bridge) is read through :meth:`TableCache.load_verified` and made through
+:func:`load_or_make`: look without the lock, then under the key's lock look again and make
+it only if it is still missing (double-checked locking), so concurrent makers of one key
+make it once.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, ContextManager, TypeVar
 
 from usdfiber import table_format
-from usdfiber.bake.baker import BakeSettings, ProgressFn, TableRequest, bake_request
-from usdfiber.bake.table import LAYOUT, LAYOUT_VERSION, BcsdfTable, TableLayoutError
+from usdfiber.bake.baker import ProgressFn, bake_request
+from usdfiber.bake.requests import TableRequest
+from usdfiber.bake.settings import BakeError, BakeSettings
+from usdfiber.bake.storage import LAYOUT, LAYOUT_VERSION, TableLayoutError
+from usdfiber.bake.table import BcsdfTable
 
-__all__ = ["CacheResult", "TableCache", "TableCacheWarning", "cache_key", "default_cache_dir"]
+__all__ = ["QUALITY_SETTINGS", "CacheResult", "TableCache", "TableCacheError", "TableCacheWarning", "cache_key",
+           "default_cache_dir", "load_or_make", "physics_key", "serves"]
+
+#: Bake settings that set how good a table is, not what it describes: a cached table of the
+#: same physics (every other input equal) whose resolution and photons are at least as good as
+#: asked serves the request (:func:`serves`).
+QUALITY_SETTINGS = ("resolution_deg", "photons", "target_error", "max_photons", "batches", "seed")
+
+T = TypeVar("T")
 
 
 class TableCacheWarning(UserWarning):
     """A cached table that could not be used (it is baked again)."""
+
+
+class TableCacheError(BakeError):
+    """A cache that cannot be used (a read-only or full disk, a directory where a file belongs,
+    a file where a directory belongs): one line naming the path and the reason."""
+
+    @classmethod
+    def of(cls, exc: OSError, root: Path) -> "TableCacheError":
+        """The error for a failed file-system operation under the cache ``root``."""
+        where = exc.filename if exc.filename is not None else root
+        why = exc.strerror or str(exc)
+        if isinstance(exc, IsADirectoryError):
+            why += " (a directory where the cache keeps a file)"
+        elif isinstance(exc, (NotADirectoryError, FileExistsError)):
+            why += " (a file where the cache keeps a directory)"
+        return cls(f"{where}: {why}; the table cache {root} must be a writable directory with free space "
+                   f"(--cache-dir or $USDFIBER_CACHE_DIR chooses another)")
 
 
 def default_cache_dir() -> Path:
@@ -55,16 +99,66 @@ def default_cache_dir() -> Path:
     return Path("~/.cache/usdfiber").expanduser()
 
 
-def cache_key(geometry_inputs: dict[str, Any], variant: int, settings: BakeSettings) -> str:
-    """sha256 hex of (geometry inputs, variant, result-changing settings, format versions)."""
+def _digest(geometry_inputs: Any, variant: int, settings: dict[str, Any]) -> str:
     blob = json.dumps({
         "inputs": geometry_inputs,
         "variant": int(variant),
-        "settings": settings.result_inputs(),
+        "settings": settings,
         "table_format": table_format.VERSION,
         "layout": [LAYOUT, LAYOUT_VERSION],
     }, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode("utf-8")).hexdigest()
+
+
+def cache_key(geometry_inputs: dict[str, Any], variant: int, settings: BakeSettings) -> str:
+    """sha256 hex of (geometry inputs, variant, result-changing settings, format versions).
+
+    The settings enter with canonical types (:class:`BakeSettings` normalises them), so
+    ``resolution_deg=10`` and ``10.0`` give one key."""
+    return _digest(geometry_inputs, variant, settings.result_inputs())
+
+
+def physics_key(geometry_inputs: Any, variant: int, settings: dict[str, Any]) -> str:
+    """sha256 hex of what a table describes: :func:`cache_key`'s inputs without the
+    :data:`QUALITY_SETTINGS` (``settings`` as :meth:`BakeSettings.result_inputs` gives them,
+    or as a table header records them)."""
+    return _digest(geometry_inputs, variant, {k: v for k, v in settings.items() if k not in QUALITY_SETTINGS})
+
+
+def serves(header: dict[str, Any], settings: BakeSettings) -> bool:
+    """Whether a table with ``header`` (of the same physics) is at least as good as a bake
+    with ``settings``: a grid as fine or finer, and as many photons per direction (with a
+    target error: an error estimate at or below it, or the photon cap reached)."""
+    try:
+        res = float(header["bake"]["settings"]["resolution_deg"])
+        least = int(header["photons"]["min_per_direction"])
+        worst = float(header.get("error_estimate", {}).get("max", math.inf))
+    except (KeyError, TypeError, ValueError):
+        return False
+    if res > settings.resolution_deg * (1 + 1e-9):
+        return False
+    if settings.target_error is None:
+        return least >= settings.photons
+    return worst <= settings.target_error or least >= settings.max_photons
+
+
+def load_or_make(load: Callable[[], T | None], lock: Callable[[], ContextManager[Any]],
+                 make: Callable[[], T], *, make_missing: bool = True) -> tuple[T | None, bool]:
+    """``(value, made)``: ``load()`` if it finds the value, else ``make()`` under ``lock()``.
+
+    Double-checked: the first ``load()`` runs without the lock (the common, cached case);
+    after taking the lock it runs again, because another process may have made the value
+    while this one waited, and only then ``make()`` runs (it also stores the value). With
+    ``make_missing=False`` a missing value gives ``(None, False)`` and no lock is taken.
+    """
+    value = load()
+    if value is not None or not make_missing:
+        return value, False
+    with lock():
+        value = load()
+        if value is not None:
+            return value, False
+        return make(), True
 
 
 @dataclass
@@ -87,15 +181,19 @@ class TableCache:
 
     # ---- paths -------------------------------------------------------------------------------
     def key(self, request: TableRequest, settings: BakeSettings) -> str:
+        """The cache key of a request baked with ``settings`` (:func:`cache_key`)."""
         return cache_key(request.inputs, request.variant, settings)
 
     def table_path(self, key: str) -> Path:
+        """Where the finished table of ``key`` is kept."""
         return self.root / "tables" / f"{key}.npz"
 
     def partial_dir(self, key: str) -> Path:
+        """The resume directory of an unfinished bake of ``key``."""
         return self.root / "partial" / key
 
     def lock_path(self, key: str) -> Path:
+        """The lock file of ``key``."""
         return self.root / "locks" / f"{key}.lock"
 
     # ---- lookups -------------------------------------------------------------------------------
@@ -105,8 +203,39 @@ class TableCache:
         A damaged file (truncated, corrupt, checksum mismatch, foreign layout) is reported
         with a TableCacheWarning naming it and the reason, and deleted.
         """
+        # A table names its key (a file without one, or renamed, serves no key).
         return self.load_verified(self.table_path(key), BcsdfTable.load,
-                                  lambda t: t.header.get("cache_key") in (None, key))
+                                  lambda t: t.header.get("cache_key") == key)
+
+    def find_serving(self, request: TableRequest, settings: BakeSettings) -> str | None:
+        """The key of a cached table that serves ``request`` baked with ``settings``: its own
+        key when that table exists, else another table of the same physics at least as good
+        (:func:`serves`; the coarsest such grid, then the fewest photons). Reads the headers of
+        the cached tables (about a millisecond each), not their arrays."""
+        key = self.key(request, settings)
+        if self.contains(key):
+            return key
+        want = physics_key(request.inputs, request.variant, settings.result_inputs())
+        best: tuple[tuple[float, int], str] | None = None
+        try:
+            files = sorted((self.root / "tables").glob("*.npz"))
+        except OSError:
+            return None
+        for path in files:
+            try:
+                h = table_format.read_header(path)
+                other = h["bake"]["settings"]
+                if (h.get("cache_key") != path.stem or h.get("variant") != request.variant
+                        or physics_key(h.get("inputs"), h["variant"], other) != want
+                        or _digest(h.get("inputs"), h["variant"], other) != path.stem
+                        or not serves(h, settings)):
+                    continue
+                rank = (-float(other["resolution_deg"]), int(h["photons"]["min_per_direction"]))
+            except (table_format.TableError, OSError, KeyError, TypeError, ValueError):
+                continue  # damaged or foreign files are reported when their own key is loaded
+            if best is None or rank < best[0]:
+                best = (rank, path.stem)
+        return None if best is None else best[1]
 
     def load_verified(self, path: Path, read: Any, written_for_key: Any, redo: str = "baking it again") -> Any:
         """``read(path)`` when the file exists, reads cleanly and ``written_for_key(result)``;
@@ -114,11 +243,16 @@ class TableCache:
         reason, ``redo``) and deleted. For every kind of file kept under this cache."""
         if not path.exists():
             return None
+        if path.is_dir():
+            raise TableCacheError(f"{path}: is a directory, where the cache keeps a file; remove it "
+                                  f"(the table cache is {self.root})")
         try:
             obj = read(path)
             if not written_for_key(obj):
                 raise TableLayoutError(f"{path}: written for another cache key")
             return obj
+        except PermissionError as exc:
+            raise TableCacheError.of(exc, self.root) from None
         except (table_format.TableError, TableLayoutError, KeyError, ValueError) as exc:
             reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
             if reason.startswith(str(path)):
@@ -126,11 +260,12 @@ class TableCache:
             warnings.warn(f"{path}: {reason}; {redo}", TableCacheWarning, stacklevel=3)
             try:
                 path.unlink()
-            except FileNotFoundError:
+            except OSError:  # gone, or a read-only cache: it is not used either way
                 pass
             return None
 
     def contains(self, key: str) -> bool:
+        """Whether a table file exists for ``key`` (it is verified when loaded)."""
         return self.table_path(key).exists()
 
     def lock(self, key: str, timeout: float = -1):
@@ -151,33 +286,48 @@ class TableCache:
         st = settings or BakeSettings()
         key = self.key(request, st)
         t0 = time.perf_counter()
-        table = self.load(key)
-        if table is not None:
-            return CacheResult(key, self.table_path(key), table, False, time.perf_counter() - t0)
-        if not bake_missing:
-            return None
-        with self.lock(key):
-            table = self.load(key)  # another process may have finished it while we waited
-            if table is not None:
-                return CacheResult(key, self.table_path(key), table, False, time.perf_counter() - t0)
-            resumed = 0
+        resumed = 0
+        served = key
 
-            def prog(done: int, total: int, info: dict) -> None:
-                nonlocal resumed
-                if info.get("event") == "start":
-                    resumed = int(info.get("resumed", 0))
-                    info = {**info, "label": request.label}
-                if progress is not None:
-                    progress(done, total, info)
+        def prog(done: int, total: int, info: dict) -> None:
+            nonlocal resumed
+            if info.get("event") == "start":
+                resumed = int(info.get("resumed", 0))
+                info = {**info, "label": request.label}
+            if progress is not None:
+                progress(done, total, info)
 
+        def load() -> BcsdfTable | None:
+            nonlocal served
+            table = self.load(key)
+            if table is None:
+                # Another table of the same physics at least as good (e.g. made by `usdfiber
+                # bake` with other batches or a finer grid) serves this request too.
+                other = self.find_serving(request, st)
+                if other is not None and other != key:
+                    table = self.load(other)
+                    served = other if table is not None else key
+            return table
+
+        def make() -> BcsdfTable:
             pdir = self.partial_dir(key)
+            path = self.table_path(key)
+            path.parent.mkdir(parents=True, exist_ok=True)  # a cache it cannot write fails before tracing
             table = bake_request(request, st, prog, resume_dir=pdir)
             table.header["cache_key"] = key
-            path = self.table_path(key)
-            path.parent.mkdir(parents=True, exist_ok=True)
             table.save(path)
             shutil.rmtree(pdir, ignore_errors=True)
-            return CacheResult(key, path, table, True, time.perf_counter() - t0, resumed)
+            return table
+
+        try:
+            table, baked = load_or_make(load, lambda: self.lock(key), make, make_missing=bake_missing)
+        except OSError as exc:  # read-only or full disk, a directory or file in the wrong place
+            raise TableCacheError.of(exc, self.root) from None
+        if table is None:
+            return None
+        return CacheResult(served, self.table_path(served), table, baked, time.perf_counter() - t0,
+                           resumed if baked else 0)
 
     def clear_partial(self, key: str) -> None:
+        """Remove the resume directory of ``key``."""
         shutil.rmtree(self.partial_dir(key), ignore_errors=True)

@@ -325,19 +325,34 @@ class Profile:
 # Validation
 # --------------------------------------------------------------------------------------------
 
-def _segment_pairs_intersect(p0, p1, q0, q1, tol: float) -> np.ndarray:
-    """Do segments p0-p1 and q0-q1 touch or cross? Broadcasting over leading dims."""
+#: Cross products whose sine is below this are zero (collinear, touching): relative to the
+#: lengths crossed, so that a fine polygon (a 30k-point circle) is judged like a coarse one.
+_SINE_TOL = 1e-12
+#: Pairs tested at once (memory of the vectorized test).
+_PAIR_BLOCK = 1 << 20
+
+
+def _segment_pairs_intersect(p0, p1, q0, q1, scale: float) -> np.ndarray:
+    """Do segments p0-p1 and q0-q1 touch or cross? Broadcasting over leading dims.
+
+    A cross product counts as zero when it is within ``_SINE_TOL`` of the product of the
+    lengths crossed, or within the rounding of coordinates of size ``scale``.
+    """
     ex, ey = p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1]
     fx, fy = q1[..., 0] - q0[..., 0], q1[..., 1] - q0[..., 1]
-    o1 = _cross(ex, ey, q0[..., 0] - p0[..., 0], q0[..., 1] - p0[..., 1])
-    o2 = _cross(ex, ey, q1[..., 0] - p0[..., 0], q1[..., 1] - p0[..., 1])
-    o3 = _cross(fx, fy, p0[..., 0] - q0[..., 0], p0[..., 1] - q0[..., 1])
-    o4 = _cross(fx, fy, p1[..., 0] - q0[..., 0], p1[..., 1] - q0[..., 1])
+    le, lf = np.hypot(ex, ey), np.hypot(fx, fy)
+    rounding = 16.0 * np.finfo(np.float64).eps * scale
 
-    def sgn(o):
+    def sgn(ax, ay, bx, by, la):
+        o = _cross(ax, ay, bx, by)
+        lb = np.hypot(bx, by)
+        tol = np.maximum(_SINE_TOL * la * lb, rounding * (la + lb))
         return (o > tol).astype(np.int8) - (o < -tol).astype(np.int8)
 
-    s1, s2, s3, s4 = sgn(o1), sgn(o2), sgn(o3), sgn(o4)
+    s1 = sgn(ex, ey, q0[..., 0] - p0[..., 0], q0[..., 1] - p0[..., 1], le)
+    s2 = sgn(ex, ey, q1[..., 0] - p0[..., 0], q1[..., 1] - p0[..., 1], le)
+    s3 = sgn(fx, fy, p0[..., 0] - q0[..., 0], p0[..., 1] - q0[..., 1], lf)
+    s4 = sgn(fx, fy, p1[..., 0] - q0[..., 0], p1[..., 1] - q0[..., 1], lf)
     hit = (s1 * s2 <= 0) & (s3 * s4 <= 0)
     collinear = (s1 == 0) & (s2 == 0) & (s3 == 0) & (s4 == 0)
     if np.any(collinear & hit):
@@ -353,41 +368,101 @@ def _segment_pairs_intersect(p0, p1, q0, q1, tol: float) -> np.ndarray:
     return hit
 
 
-def _first_self_intersection(loop: np.ndarray, tol: float) -> tuple[int, int] | None:
+def _overlap_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray):
+    """Blocks of index pairs (ia, ib) whose intervals [lo, hi] overlap, each pair once.
+
+    Sort and sweep: two intervals overlap when the start of one lies in the other, so the
+    pairs are ``lo_b in [lo_a, hi_a]`` plus ``lo_a in (lo_b, hi_b]``, each a range of a sorted
+    array (binary search). O((n + K) log n) for K overlapping pairs; yields blocks of at most
+    about ``_PAIR_BLOCK`` pairs.
+    """
+    for lo_s, hi_s, lo_o, swap in ((lo_a, hi_a, lo_b, False), (lo_b, hi_b, lo_a, True)):
+        order = np.argsort(lo_o, kind="stable")
+        sorted_lo = lo_o[order]
+        first = np.searchsorted(sorted_lo, lo_s, side="right" if swap else "left")
+        last = np.searchsorted(sorted_lo, hi_s, side="right")
+        counts = np.maximum(last - first, 0)
+        ends = np.cumsum(counts)
+        i = 0
+        while i < len(lo_s):
+            j = int(np.searchsorted(ends, (ends[i - 1] if i else 0) + _PAIR_BLOCK, side="right"))
+            j = max(j, i + 1)
+            c = counts[i:j]
+            total = int(c.sum())
+            if total:
+                own = np.repeat(np.arange(i, j), c)
+                offs = np.arange(total) - np.repeat(np.cumsum(c) - c, c)
+                other = order[np.repeat(first[i:j], c) + offs]
+                yield (other, own) if swap else (own, other)
+            i = j
+
+
+def _axis_pairs(a0, a1, b0, b1):
+    """The overlap blocks along the axis (x or y) whose extents overlap least, then filtered
+    to the pairs whose boxes overlap along the other axis too."""
+    lo_a, hi_a = np.minimum(a0, a1), np.maximum(a0, a1)
+    lo_b, hi_b = np.minimum(b0, b1), np.maximum(b0, b1)
+
+    def crowding(axis: int) -> float:
+        # Overlapping pairs grow with the extents' total over the span: sweep the emptier axis.
+        span = max(float(np.ptp(np.concatenate([lo_a[:, axis], hi_b[:, axis]]))), 1e-300)
+        return float(np.sum(hi_a[:, axis] - lo_a[:, axis]) + np.sum(hi_b[:, axis] - lo_b[:, axis])) / span
+
+    axis = 0 if crowding(0) <= crowding(1) else 1
+    other = 1 - axis
+    for ia, ib in _overlap_pairs(lo_a[:, axis], hi_a[:, axis], lo_b[:, axis], hi_b[:, axis]):
+        keep = (lo_a[ia, other] <= hi_b[ib, other]) & (lo_b[ib, other] <= hi_a[ia, other])
+        yield ia[keep], ib[keep]
+
+
+def _first_pair(pairs) -> tuple[int, int] | None:
+    best = None
+    for a, b in pairs:
+        if len(a):
+            k = int(np.lexsort((b, a))[0])
+            cand = (int(a[k]), int(b[k]))
+            best = cand if best is None or cand < best else best
+    return best
+
+
+def _first_self_intersection(loop: np.ndarray, scale: float) -> tuple[int, int] | None:
+    """The first pair of edges (i < j) of a loop that touch or cross, adjacent edges only when
+    they fold back on each other; O(n log n) for loops of bounded depth (sort and sweep)."""
     n = len(loop)
     p0, p1 = loop, np.roll(loop, -1, axis=0)
     # Adjacent edges share a vertex; they are invalid only if they fold back on each other.
     e = p1 - p0
     e_next = np.roll(e, -1, axis=0)
-    fold = (np.abs(_cross(e[:, 0], e[:, 1], e_next[:, 0], e_next[:, 1])) <= tol) & (
+    fold = (np.abs(_cross(e[:, 0], e[:, 1], e_next[:, 0], e_next[:, 1]))
+            <= _SINE_TOL * np.hypot(e[:, 0], e[:, 1]) * np.hypot(e_next[:, 0], e_next[:, 1])) & (
         np.sum(e * e_next, axis=1) < 0)
     if np.any(fold):
         i = int(np.flatnonzero(fold)[0])
         return i, (i + 1) % n
-    rows = max(1, (1 << 21) // n)
-    j_all = np.arange(n)
-    for s in range(0, n, rows):
-        i = np.arange(s, min(n, s + rows))
-        hit = _segment_pairs_intersect(p0[i, None], p1[i, None], p0[None], p1[None], tol)
-        # Keep pairs i < j that are not adjacent (around the closing edge too).
-        keep = (j_all[None] > i[:, None] + 1) & ~((i[:, None] == 0) & (j_all[None] == n - 1))
-        hit &= keep
-        if np.any(hit):
-            a, b = np.argwhere(hit)[0]
-            return int(i[a]), int(b)
-    return None
+
+    def hits():
+        for i, j in _axis_pairs(p0, p1, p0, p1):
+            # Pairs i < j that are not adjacent (around the closing edge too).
+            keep = (j > i + 1) & ~((i == 0) & (j == n - 1))
+            i, j = i[keep], j[keep]
+            for s in range(0, len(i), _PAIR_BLOCK):
+                a, b = i[s:s + _PAIR_BLOCK], j[s:s + _PAIR_BLOCK]
+                hit = _segment_pairs_intersect(p0[a], p1[a], p0[b], p1[b], scale)
+                yield a[hit], b[hit]
+
+    return _first_pair(hits())
 
 
-def _first_cross_intersection(la: np.ndarray, lb: np.ndarray, tol: float) -> tuple[int, int] | None:
+def _first_cross_intersection(la: np.ndarray, lb: np.ndarray, scale: float) -> tuple[int, int] | None:
     a0, a1 = la, np.roll(la, -1, axis=0)
     b0, b1 = lb, np.roll(lb, -1, axis=0)
-    rows = max(1, (1 << 21) // len(lb))
-    for s in range(0, len(la), rows):
-        hit = _segment_pairs_intersect(a0[s:s + rows, None], a1[s:s + rows, None], b0[None], b1[None], tol)
-        if np.any(hit):
-            a, b = np.argwhere(hit)[0]
-            return int(a + s), int(b)
-    return None
+
+    def hits():
+        for i, j in _axis_pairs(a0, a1, b0, b1):
+            hit = _segment_pairs_intersect(a0[i], a1[i], b0[j], b1[j], scale)
+            yield i[hit], j[hit]
+
+    return _first_pair(hits())
 
 
 def validate_loops(loops: Sequence[np.ndarray], name: str = "profile", oriented: bool = True,
@@ -418,20 +493,20 @@ def validate_loops(loops: Sequence[np.ndarray], name: str = "profile", oriented:
     scale = float(np.max(np.ptp(allpts, axis=0)))
     if not scale > 0:
         raise ProfileError(f"{name}: all vertices coincide (zero-size profile)")
-    tol = 1e-12 * scale * scale
+    coord = float(np.max(np.abs(allpts)))  # coordinate size, for rounding
     for k, l in zip(labels, arrs):
         area = _signed_area(l)
         sv = np.linalg.svd(l - l.mean(axis=0), compute_uv=False)
         if sv[-1] <= 1e-9 * sv[0]:
             raise ProfileError(f"{name}, loop {k}: zero or near-zero area ({area:.3g}); vertices are collinear")
-        hit = _first_self_intersection(l, tol)
+        hit = _first_self_intersection(l, coord)
         if hit is not None:
             raise ProfileError(f"{name}, loop {k}: self-intersection between edges {hit[0]} and {hit[1]}")
         if abs(area) <= 1e-9 * scale * scale:
             raise ProfileError(f"{name}, loop {k}: zero or near-zero area ({area:.3g})")
     for ia in range(len(arrs)):
         for ib in range(ia + 1, len(arrs)):
-            hit = _first_cross_intersection(arrs[ia], arrs[ib], tol)
+            hit = _first_cross_intersection(arrs[ia], arrs[ib], coord)
             if hit is not None:
                 raise ProfileError(
                     f"{name}: loop {labels[ia]} (edge {hit[0]}) intersects loop {labels[ib]} (edge {hit[1]})")

@@ -1,29 +1,31 @@
 """Recolouring a table's p in fused, multi-threaded Dr.Jit (LLVM) kernels.
 
-:meth:`BcsdfTable.recolour` needs, for every bin of every incoming direction, the bin mass
-``F(s)`` interpolated between the two absorption levels around ``s`` (cubic Hermite in
-``log F``, :func:`usdfiber.bake.table.hermite_log_interp`), then ``p = F / sum(F) / domega``.
-On a 2 degree table that is 10^8 bins per channel. In numpy (float64, one core, a temporary
-array per operation) it takes about 18 s per channel; here the interpolation of every channel
-is one kernel over the bins, on all cores, in float32, reading the float16 levels straight
-from the table's own arrays (Dr.Jit maps them without a copy), with one ``log`` and one
-``exp`` per bin and channel. A second kernel normalizes each (channel, direction) and writes
-the channels one after the other; :class:`Recoloured` views that memory as ``(..., B, n_po,
-C)`` without a copy.
+:meth:`~usdfiber.bake.table.BcsdfTable.recolour` needs, for every bin of every incoming
+direction, the bin mass ``F(s)`` interpolated between the two absorption levels around ``s``
+(cubic Hermite in ``log F``, :func:`usdfiber.bake.absorption.hermite_log_interp`), then
+``p = F / sum(F) / domega``. On a 2 degree table that is 10^8 bins per channel. In numpy
+(float64, one core, a temporary array per operation) it takes about 18 s per channel; here
+the interpolation of every channel is one kernel over the bins, on all cores, in float32,
+reading the float16 levels straight from the table's own arrays (Dr.Jit maps them without a
+copy), with one ``log`` and one ``exp`` per bin and channel. A second kernel normalizes each
+(channel, direction) and writes the channels one after the other;
+:class:`~usdfiber.bake.table.Recoloured` views that memory as ``(..., B, n_po, C)`` without a
+copy.
 
-The arithmetic is that of :func:`~usdfiber.bake.table.hermite_log_interp` in float32 (checked
-against it in ``tests/test_recolour.py``); the float64 numpy path stays as the reference and
-the fallback where Dr.Jit has no LLVM backend.
+The arithmetic is that of :func:`~usdfiber.bake.absorption.hermite_log_interp` in float32
+(checked against it in ``tests/test_recolour.py``); the float64 numpy path stays as the
+reference and the fallback where Dr.Jit has no LLVM backend.
 """
 from __future__ import annotations
 
 import functools
-import math
 from typing import Sequence
 
 import numpy as np
 
-__all__ = ["available", "level_bracket", "recolour_p"]
+from usdfiber.bake.absorption import level_bracket
+
+__all__ = ["available", "recolour_p"]
 
 #: Elements of the level arrays (or of the output) per launch: indices stay 32-bit.
 _MAX_ELEMENTS = 1 << 31
@@ -44,14 +46,6 @@ def available() -> bool:
         return bool(dr.has_backend(dr.JitBackend.LLVM))
     except Exception:   # no drjit, or no usable LLVM: the numpy path is used
         return False
-
-
-def level_bracket(levels: np.ndarray, s: float) -> int:
-    """Index k with levels[k] <= s < levels[k+1] (the last level for s beyond it); ValueError
-    for an absorption that is not finite and >= 0."""
-    if not (math.isfinite(s) and s >= 0.0):
-        raise ValueError(f"absorption must be finite and >= 0, got {s}")
-    return int(np.clip(np.searchsorted(levels, s, side="right") - 1, 0, len(levels) - 1))
 
 
 class _Channel:

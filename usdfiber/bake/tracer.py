@@ -40,6 +40,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from usdfiber.backend import mitsuba
+from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
 
 __all__ = ["FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
@@ -254,6 +255,9 @@ class _Launch:
     beam: np.ndarray       # (n,) uint32
     photon: np.ndarray     # (n,) uint64
     mix: np.ndarray        # (n,) uint64
+    #: Owen-scramble seeds (n_dirs, 4) uint32 of the per-stream Sobol points that replace the
+    #: first random numbers (``sampler="sobol"``), or None for independent PCG32 numbers only.
+    scramble: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -303,8 +307,18 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     rng = mi.PCG32(size=n)
     rng.seed(initstate=mi.UInt64(launch.mix + launch.photon), initseq=mi.UInt64((launch.mix >> np.uint64(1)) + launch.photon))
 
-    # Launch: offset h along u_perp = (-sin phi, cos phi) over [lo, lo + width].
-    h0 = lo_o + w_o * rng.next_float32()
+    qmc = launch.scramble is not None
+    if qmc:
+        # Scrambled Sobol point of the photon's number in its stream: h, then the first
+        # boundary event's numbers (sampling.py; every point is uniform: no bias).
+        sobol = sampling.sobol_unscrambled(U(launch.photon.astype(np.uint32)))
+        qs = [sampling.to_unit_float(sampling.owen_scramble(
+            sobol[k], dr.gather(U, U(np.ascontiguousarray(launch.scramble[:, k])), beam)))
+            for k in range(sampling.QMC_DIMENSIONS)]
+        h0 = lo_o + w_o * qs[0]
+    else:
+        # Launch: offset h along u_perp = (-sin phi, cos phi) over [lo, lo + width].
+        h0 = lo_o + w_o * rng.next_float32()
     if z_inv:
         s0 = rb_o * 1.01 + eps_o
         z0 = F(0.0)
@@ -330,6 +344,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     if not rough:
         for k in ("h", "wsteps", "need_m", "has_m", "mq", "forced"):
             del st[k]
+    if qmc:
+        st["q"] = V3(qs[1], qs[2], qs[3])
 
     def finish(s: dict, fin: Any) -> None:
         """End the boundary event of lanes ``fin``: set the medium, reconcile with the facet, offset."""
@@ -490,6 +506,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             # 4. One microfacet event for new and continuing walks.
             sc = hit | cont
             u1, u2, u3 = rng.next_float32(), rng.next_float32(), rng.next_float32()
+            if qmc:
+                # The first boundary event takes its normal and Fresnel choice from the point.
+                first = hit & (s["bounces"] == 1)
+                u1, u2, u3 = (dr.select(first, s["q"][k], u) for k, u in enumerate((u1, u2, u3)))
             below = sc & ~s["has_m"] & (wi.z < 1e-3)
             m_fast, _ = distr.sample(wi, mi.Point2f(u1, u2))
             m = dr.select(s["has_m"], s["mq"], V3(m_fast))
@@ -503,7 +523,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             s["mq"] = dr.select(below, V3(u1, u2, 0.0), s["mq"])
         else:
             # Smooth boundary: one Fresnel event about the macro normal, in world space.
-            wo, refl = fresnel_event(-d, nm, ~inside, rng.next_float32())
+            u = rng.next_float32()
+            if qmc:
+                u = dr.select(hit & (s["bounces"] == 1), s["q"].x, u)
+            wo, refl = fresnel_event(-d, nm, ~inside, u)
             s["d"] = dr.select(hit, wo, s["d"])
             s["above"] = dr.select(hit, refl, s["above"])
             finish(s, hit)
@@ -591,6 +614,7 @@ def trace(
     batch: int = 1 << 21,
     mode: str = "symbolic",
     max_steps: int | None = None,
+    sampler: str = "independent",
 ) -> TraceResult:
     """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
 
@@ -604,12 +628,15 @@ def trace(
     compacts after each (1.5x slower on 2 CPU cores; may differ on a GPU). Both give identical
     photons for a given ``seed``, whatever ``batch`` is. ``max_steps`` bounds loop iterations
     including periodic wraps (cuticle fibers at grazing angles); photons stopped by it or by
-    ``max_bounces`` are reported as cut. Many directions are faster together:
-    :func:`trace_many`.
+    ``max_bounces`` are reported as cut. ``sampler="sobol"`` draws the beam offset and the
+    first boundary event's numbers from an Owen-scrambled Sobol point per photon (one
+    scramble per stream, :mod:`usdfiber.bake.sampling`): the photons of a stream are
+    stratified over those dimensions; ``"independent"`` (default) uses PCG32 numbers only.
+    Many directions are faster together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
-                      max_steps=max_steps)[0]
+                      max_steps=max_steps, sampler=sampler)[0]
 
 
 def trace_many(
@@ -625,6 +652,7 @@ def trace_many(
     batch: int = 1 << 21,
     mode: str = "symbolic",
     max_steps: int | None = None,
+    sampler: str = "independent",
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -657,6 +685,10 @@ def trace_many(
         raise ValueError("n_photons must be > 0")
     if not 0.0 <= beta_deg < 90.0:
         raise ValueError("beta_deg must be in [0, 90)")
+    if sampler not in ("independent", "sobol"):
+        raise ValueError(f"sampler must be 'independent' or 'sobol', got {sampler!r}")
+    if sampler == "sobol" and int(counts.max()) > 1 << 32:
+        raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
     beams = np.empty((nd, 7), dtype=np.float64)
     widths = np.empty((nd, 2), dtype=np.float64)     # W(phi_i), launch width
@@ -672,6 +704,7 @@ def trace_many(
         widths[j] = (W, width)
     beams32 = beams.astype(np.float32)
     mixes = np.array([_seed_mix(int(s)) for s in seeds], dtype=np.uint64)
+    scramble = sampling.scramble_seeds(mixes) if sampler == "sobol" else None
     alpha = float(np.tan(np.radians(beta_deg))) if beta_deg > 0.0 else 0.0
     if max_steps is None:
         # A safety net only: boundary hits, microsurface events (256 per hit) and z-wraps have
@@ -689,7 +722,7 @@ def trace_many(
         b = min(a + int(batch), total)
         lane = np.arange(a, b, dtype=np.int64)
         beam = (np.searchsorted(starts, lane, side="right") - 1).astype(np.uint32)
-        launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam])
+        launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
                            max_steps=int(max_steps), mode=mode)
         hit = out["hit_any"]

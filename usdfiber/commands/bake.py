@@ -27,7 +27,7 @@ import sys
 import warnings
 from typing import Any
 
-from usdfiber.commands.arg_types import positive_float, positive_int
+from usdfiber.commands.arg_types import add_memory_budget_option, positive_float, positive_int, seed
 
 
 def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -65,7 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="independent batches per direction for the error estimate (default 8)")
     p.add_argument("--max-bounces", type=positive_int, default=None, metavar="N",
                    help="interactions before a photon is dropped (default 4096)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed, 0 to 2^32 - 1 (default 0)")
     p.add_argument("--incoming", choices=("centre", "box"), default="centre",
                    help="light of a table node from the bin centre (default, the paper's) or spread "
                         "over the bin (box: a reciprocal bin-averaged table)")
@@ -76,12 +76,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="list the tables (key, cached or not) without baking")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_memory_budget_option(p)
+    from usdfiber.farm.command import add_bake_options
+
+    add_bake_options(p)   # --scheduler, --shard, --task-photons, --json
     p.set_defaults(func=run)
     one_line_errors(p)
 
 
 def _settings(args: argparse.Namespace):
-    from usdfiber.bake.baker import BakeError, BakeSettings
+    from usdfiber.bake.settings import BakeError, BakeSettings
     from usdfiber.cli import UsageError
 
     kw: dict[str, Any] = {"resolution_deg": args.resolution, "seed": args.seed, "incoming": args.incoming}
@@ -104,7 +108,8 @@ def _settings(args: argparse.Namespace):
 
 
 def _requests(args: argparse.Namespace) -> list:
-    from usdfiber.bake.baker import BakeError, requests_from_params, requests_from_preset, tables_for_stage
+    from usdfiber.bake.requests import requests_from_params, requests_from_preset, tables_for_stage
+    from usdfiber.bake.settings import BakeError
     from usdfiber.cli import UsageError
     from usdfiber.stage_io import StageOpenError, open_stage
 
@@ -117,6 +122,7 @@ def _requests(args: argparse.Namespace) -> list:
                 stage = open_stage(path)
             except StageOpenError as exc:
                 raise UsageError(str(exc)) from None
+            _validate(stage, path)
             for r in tables_for_stage(stage):
                 r.prims = [f"{path}:{p}" for p in r.prims]
                 reqs.append(r)
@@ -127,6 +133,25 @@ def _requests(args: argparse.Namespace) -> list:
     except BakeError as exc:
         raise UsageError(str(exc)) from None
     return reqs
+
+
+#: Check problems of a prim's ``fiber:table`` asset, which baking resolves.
+_TABLE_PROBLEMS = frozenset({"TableMissing", "TableUnreadable", "TableStale"})
+
+
+class StageRefused(Exception):
+    """A stage with ``usdfiber check`` errors: nothing of it is baked (exit 1)."""
+
+
+def _validate(stage: Any, path: str) -> None:
+    """Refuse a stage with ``usdfiber check`` errors, with check's messages, as render does:
+    its values are read only once they are known to be usable (no allocation before that)."""
+    from usdfiber.validation.runner import check_stage
+
+    report = check_stage(stage)
+    # A missing or damaged table asset is what a bake makes: only the other errors refuse it.
+    if any(p.code not in _TABLE_PROBLEMS for p in report.errors):
+        raise StageRefused(f"{path}: the stage does not pass `usdfiber check`; not baking:\n" + report.to_text())
 
 
 def _dedupe(reqs: list, cache, settings) -> list[tuple[str, Any]]:
@@ -165,7 +190,7 @@ def _worker_init(threads: int) -> None:
 
 
 def _worker(job: tuple) -> tuple:
-    root, req, settings = job
+    root, key, req, settings = job
     import usdfiber  # noqa: F401
     from usdfiber.bake.cache import TableCache
 
@@ -173,7 +198,7 @@ def _worker(job: tuple) -> tuple:
         warnings.simplefilter("always")
         res = TableCache(root).get_or_bake(req, settings)
     res.table = _Light(res.table)
-    return res, [str(w.message) for w in caught]
+    return key, res, [str(w.message) for w in caught]
 
 
 class _Light:
@@ -188,10 +213,24 @@ def run(args: argparse.Namespace) -> int:
     from usdfiber.bake.cache import TableCache
     from usdfiber.cli import UsageError
 
+    from usdfiber.bake.settings import BakeError
+    from usdfiber.memory_budget import MemoryBudget
+
     settings = _settings(args)
+    budget = MemoryBudget.resolve(args.memory_budget)
     cache = TableCache(args.cache_dir)
-    reqs = _requests(args)
+    try:
+        reqs = _requests(args)
+    except StageRefused as exc:
+        print(f"usdfiber: error: {exc}", file=sys.stderr)
+        return 1
     jobs = _dedupe(reqs, cache, settings)
+    if jobs and not args.dry_run:
+        # Tables are baked --jobs at a time: that many must fit together.
+        together = min(args.jobs, len(jobs))
+        budget.require(together * settings.table_bytes(),
+                       f"baking {together} table{'s' if together > 1 else ''} at a time at --resolution "
+                       f"{settings.resolution_deg:g}")
 
     def show_warning(message, category, filename, lineno, file=None, line=None):
         print(f"usdfiber: warning: {message}", file=sys.stderr)
@@ -200,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dry_run:
         for key, req in jobs:
-            state = "cached" if cache.contains(key) else "to bake"
+            serving = cache.find_serving(req, settings)
+            state = "to bake" if serving is None else ("cached" if serving == key else f"served by {serving}")
             print(f"{key}  {cache.table_path(key)}  {state}  [{req.label}: {', '.join(req.prims[:3])}]")
         print(f"{len(jobs)} table{'s' if len(jobs) != 1 else ''}")
         return 0
@@ -211,6 +251,10 @@ def run(args: argparse.Namespace) -> int:
         cache.root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsageError(f"cannot create the cache directory {cache.root}: {exc.strerror or exc}") from None
+    from usdfiber.farm.command import run_bake, wants_farm
+
+    if wants_farm(args):
+        return run_bake(args, reqs, settings, cache)
 
     from tqdm import tqdm
 
@@ -223,11 +267,16 @@ def run(args: argparse.Namespace) -> int:
         bar = tqdm(total=len(jobs), unit="table", desc="tables", file=sys.stderr, disable=not show)
         with ctx.Pool(min(args.jobs, len(jobs)), initializer=_worker_init, initargs=(threads,)) as pool:
             order = {k: r for k, r in jobs}
-            for res, msgs in pool.imap_unordered(_worker, [(cache.root, r, settings) for _, r in jobs]):
-                for m in msgs:
-                    print(f"usdfiber: warning: {m}", file=sys.stderr)
-                bar.write(_line(res, order[res.key]), file=sys.stdout)
-                bar.update(1)
+            try:
+                for key, res, msgs in pool.imap_unordered(_worker, [(cache.root, k, r, settings) for k, r in jobs]):
+                    for m in msgs:
+                        print(f"usdfiber: warning: {m}", file=sys.stderr)
+                    bar.write(_line(res, order[key]), file=sys.stdout)
+                    bar.update(1)
+            except BakeError as exc:
+                bar.close()
+                print(f"usdfiber: error: {exc}", file=sys.stderr)
+                return 1
         bar.close()
         return 0
 
@@ -249,6 +298,9 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             res = cache.get_or_bake(req, settings, progress)
+        except BakeError as exc:  # a cache that cannot be written, a profile that cannot be traced
+            print(f"usdfiber: error: {exc}", file=sys.stderr)
+            return 1
         finally:
             if bar is not None:
                 bar.close()

@@ -1,8 +1,13 @@
-"""usdfiber check STAGE... [--json] [--warnings-as-errors] [--time T]: validate stages.
+"""usdfiber check STAGE... [--json] [--warnings-as-errors] [--time T] [--all-variants]: validate stages.
 
 Runs every usdFiber validator (USD validators with the keyword "usdFiber": fiber, yarn and
 profile values, curve topology and widths, baked tables) and the stage's composition
 (missing sublayers, references, payloads count as errors).
+
+--all-variants also checks every variant that is not selected (usdchecker's habit): each
+variant of each variant set is selected in turn, in memory, and the prim's subtree validated
+again; variant sets are varied one at a time, not in combination. Cost: one validation of the
+prim's subtree per unselected variant (a stage with 3 sets of 4 variants on one prim: 9 more).
 
 Text output groups problems by stage, errors before warnings, one per line:
 ``<prim>[.<attribute>][ @ <time>]: <code>: <message>  [<layer>]``, then a summary line.
@@ -51,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time", type=_time, default=None, metavar="T",
                    help="check values at time code T only (default: the default value "
                         "and every authored time sample)")
+    p.add_argument("--all-variants", action="store_true",
+                   help="also check every variant that is not selected, one variant set at a "
+                        "time (costs one validation of the prim's subtree per variant)")
     p.set_defaults(func=run)
 
 
@@ -63,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     reports: list[CheckReport] = []
     for path in args.stages:
         try:
-            reports.append(check_stage(path, time=args.time))
+            reports.append(check_stage(path, time=args.time, all_variants=args.all_variants))
         except StageOpenError as exc:
             # One line on stderr in every mode; JSON also records it for pipelines.
             print(f"usdfiber: error: {exc}", file=sys.stderr)

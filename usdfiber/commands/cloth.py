@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 
-from usdfiber.commands.arg_types import finite_float, percentage, positive_int
+from usdfiber.commands.arg_types import add_memory_budget_option, finite_float, percentage, positive_int
 
 KNITS = ("stockinette", "garter")
 WEAVES = ("plain", "satin")
@@ -63,6 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-clearance", type=finite_float, default=None, metavar="X",
                    help="smallest allowed distance between yarn centre lines, in yarn "
                         "diameters (default 0.8; 0 disables the check)")
+    add_memory_budget_option(p)
     p.set_defaults(func=run)
 
 
@@ -72,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from pxr import Tf, Usd, UsdGeom
 
     from usdfiber import cloth
+    from usdfiber.errors import PrimError
     from usdfiber.cli import UsageError
 
     knit = args.pattern in KNITS
@@ -90,8 +92,11 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".usd", ".usda", ".usdc"):
         raise UsageError(f"--output must be a .usd, .usda or .usdc file, got {args.output}")
 
+    from usdfiber.memory_budget import MemoryBudget
+
     common: dict = {"yarn": args.yarn, "fiber": args.fiber_kind, "dye": args.dye,
-                    "depth_of_shade": args.depth_of_shade}
+                    "depth_of_shade": args.depth_of_shade,
+                    "memory_budget": MemoryBudget.resolve(args.memory_budget)}
     if args.min_clearance is not None:
         common["min_clearance"] = args.min_clearance
     stage = Usd.Stage.CreateInMemory()
@@ -116,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                 if args.floats is not None:
                     kw["floats"] = args.floats
                 prim = cloth.satin(stage, "/Cloth", **kw)
-    except cloth.ClothError as exc:
+    except (cloth.ClothError, PrimError) as exc:
         raise UsageError(f"cloth {args.pattern}: {exc}") from None
     stage.SetDefaultPrim(prim)
     stage.GetRootLayer().documentation = prim.GetDocumentation()

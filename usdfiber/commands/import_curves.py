@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from usdfiber.commands.arg_types import percentage, positive_float
+from usdfiber.commands.arg_types import add_memory_budget_option, percentage, positive_float
 
 
 def _width(text: str) -> float | str:
@@ -56,29 +56,33 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="dye depth of shade in percent on weight of fiber")
     p.add_argument("--root", default=None, metavar="NAME",
                    help="name of the default prim (default: the file's name)")
+    add_memory_budget_option(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from pxr import Sdf
 
-    from usdfiber.authoring import AuthoringError
+    from usdfiber.errors import PrimError
     from usdfiber.cli import UsageError
-    from usdfiber.importers import _UNSET, CurveFileError, read_curves, write_curves
+    from usdfiber.importers import UNSET, CurveFileError, check_file_budget, read_curves, write_curves
+    from usdfiber.memory_budget import MemoryBudget
 
     if args.root is not None and not Sdf.Path.IsValidIdentifier(args.root):
         raise UsageError(f"--root must be a valid prim name, got {args.root!r}")
+    budget = MemoryBudget.resolve(args.memory_budget)
+    check_file_budget(args.file, budget)
     try:
         data = read_curves(args.file)
     except CurveFileError as exc:
         raise UsageError(str(exc)) from None
     try:
         out = write_curves(
-            data, args.output, preset=_UNSET if args.preset is None else args.preset,
+            data, args.output, preset=UNSET if args.preset is None else args.preset,
             yarn=args.yarn, units_per_file_unit=args.units_per_file_unit,
             meters_per_unit=args.meters_per_unit, width=args.width, dye=args.dye,
-            depth_of_shade=args.depth_of_shade, root=args.root)
-    except (AuthoringError, ValueError) as exc:
+            depth_of_shade=args.depth_of_shade, root=args.root, memory_budget=budget)
+    except (PrimError, ValueError) as exc:  # PrimError: file, prim, attribute and what was expected
         raise UsageError(str(exc)) from None
     except OSError as exc:
         raise UsageError(f"{args.output}: cannot write: {exc.strerror or exc}") from None

@@ -11,6 +11,8 @@ import argparse
 import json
 from typing import Any
 
+from usdfiber.spec.attributes import Fiber
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -55,13 +57,13 @@ def _fiber(p) -> dict[str, Any]:
 def _dye(d) -> dict[str, Any]:
     return {"type": "dye", "name": d.name, "dye_class": d.dye_class,
             "published": {"epsilon_L_mg_cm": _rng(d.epsilon_range)},
-            "authored": {"fiber:dye:class": d.dye_class, "fiber:dye:extinction": list(d.extinction)},
+            "authored": {Fiber.DYE_CLASS: d.dye_class, Fiber.DYE_EXTINCTION: list(d.extinction)},
             "used_for": d.used_for, "source": d.source}
 
 
 def _colour(c) -> dict[str, Any]:
     return {"type": "dyeColour", "name": c.name, "dye": c.dye, "dye_class": c.dye_class,
-            "authored": {"fiber:dye:class": c.dye_class, "fiber:dye:extinction": list(c.extinction)},
+            "authored": {Fiber.DYE_CLASS: c.dye_class, Fiber.DYE_EXTINCTION: list(c.extinction)},
             "note": "per-channel values illustrative; magnitudes from the paper's range",
             "source": c.source}
 
@@ -130,7 +132,7 @@ def _text(items: list[dict[str, Any]]) -> str:
                        f"{_f(a['fiber:ior:parallel']):>9}{_f(a['fiber:ior:perpendicular']):>9}"
                        f"{_f(a['fiber:roughness:ra']):>11}{_f(a['fiber:roughness:profileLength']):>6}"
                        f"{_f(a['fiber:roughness:beta']):>9}  (roughness source: beta)")
-            if a["fiber:cuticle:height"]:
+            if a[Fiber.CUTICLE_HEIGHT]:
                 out.append(f"    cuticle: tilt {_f(a['fiber:cuticle:tilt'])} deg, height "
                            f"{_f(a['fiber:cuticle:height'])} um, spacing {_f(a['fiber:cuticle:spacing'])} um "
                            f"({d['cuticle_source']})")

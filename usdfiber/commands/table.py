@@ -14,6 +14,12 @@ Undyed by default; ``--dye NAME`` (a dye preset or colour of ``usdfiber presets`
 ``--diameter`` (defaults: the fiber recorded in the table), or ``--mu-a R G B`` (1/um).
 The image is written through OpenImageIO (format from the extension: .png, .exr, ...).
 
+``--figure`` writes a labelled matplotlib figure instead (:mod:`usdfiber.table_plot`; PNG,
+PDF or SVG by extension): ``grid``, the paper's Figure 3 layout (rows: each ``--theta-i``,
+columns: each ``--psi``; log radiance with a colour bar, the specular cone dashed);
+``longitudinal``, Figure 14-style curves over theta_o, one per ``--theta-i``; ``errors``,
+the bake's error estimate per direction against its photons.
+
 Exit status: 0 done, 2 bad input or an unreadable table (one line on stderr).
 """
 from __future__ import annotations
@@ -62,9 +68,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     pp = tsub.add_parser("plot", help="write a false-colour log slice of the BCSDF (paper Fig. 3)",
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     pp.add_argument("file", metavar="FILE")
-    pp.add_argument("--theta-i", type=finite_float, required=True, metavar="DEG", help="light longitude, degrees")
+    pp.add_argument("--theta-i", type=finite_float, required=True, nargs="+", metavar="DEG",
+                    help="light longitude, degrees (several: the rows of --figure grid, the curves of longitudinal)")
     pp.add_argument("--phi-i", type=finite_float, required=True, metavar="DEG", help="light azimuth, degrees")
-    pp.add_argument("--psi", type=finite_float, default=0.0, metavar="DEG", help="fiber rotation, degrees")
+    pp.add_argument("--psi", type=finite_float, default=[0.0], nargs="+", metavar="DEG",
+                    help="fiber rotation, degrees (several: the columns of --figure grid)")
+    pp.add_argument("--figure", choices=("grid", "longitudinal", "errors"), default=None,
+                    help="write a labelled figure (see above) instead of the raw false-colour slice")
     pp.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
     pp.add_argument("--depth-of-shade", type=_nonneg, default=0.1, metavar="PCT",
                     help="depth of shade in percent (default 0.1)")
@@ -86,7 +96,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _load(path: str):
-    from usdfiber.bake.table import BcsdfTable, TableLayoutError
+    from usdfiber.bake.storage import TableLayoutError
+    from usdfiber.bake.table import BcsdfTable
     from usdfiber.cli import UsageError
     from usdfiber.table_format import TableError
 
@@ -212,8 +223,9 @@ def run_plot(args: argparse.Namespace) -> int:
     fiber = table.header.get("fiber") or {}
     if args.scale < 1 or args.scale > 64:
         raise UsageError(f"--scale must be 1 to 64 pixels per bin, got {args.scale}")
-    if abs(args.theta_i) > 90:
-        raise UsageError(f"--theta-i must be within [-90, 90] degrees, got {args.theta_i:g}")
+    for ti in args.theta_i:
+        if abs(ti) > 90:
+            raise UsageError(f"--theta-i must be within [-90, 90] degrees, got {ti:g}")
     diameter = args.diameter if args.diameter is not None else float(fiber.get("diameter_um") or table.baked_diameter_um)
     if args.mu_a is not None and args.dye is not None:
         raise UsageError("give either --dye or --mu-a, not both")
@@ -221,7 +233,7 @@ def run_plot(args: argparse.Namespace) -> int:
         mu_a = [float(x) for x in args.mu_a]
     elif args.dye is not None:
         from usdfiber import presets
-        from usdfiber.fiber_params import mu_a_per_um
+        from usdfiber.spec.fiber import mu_a_per_um
 
         try:
             _cls, eps = presets.dye_values(args.dye)
@@ -232,6 +244,9 @@ def run_plot(args: argparse.Namespace) -> int:
         mu_a = [mu_a_per_um(density, args.depth_of_shade, e) for e in eps]
     else:
         mu_a = [0.0, 0.0, 0.0]
+    if args.figure is not None:
+        return _write_figure(args, table, mu_a, diameter / table.baked_diameter_um)
+    args.theta_i, args.psi = args.theta_i[0], args.psi[0]
     rec = table.recolour(mu_a, diameter / table.baked_diameter_um)
     g = table.grid
     h_px, w_px = g.n_theta_o * args.scale, g.n_phi_o * args.scale
@@ -266,4 +281,30 @@ def run_plot(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write {args.output}: {buf.geterror() or oiio.geterror()}")
     print(f"wrote {args.output} ({w_px}x{h_px}): log10(Lambda p) from {lo:.3g} to {lo + args.decades:.3g} "
           f"per sr; albedo {', '.join(f'{a:.4f}' for a in np.atleast_1d(alb))}")
+    return 0
+
+
+def _write_figure(args: argparse.Namespace, table: Any, mu_a: list[float], diameter_scale: float) -> int:
+    """``table plot --figure``: a matplotlib figure of :mod:`usdfiber.table_plot`."""
+    from usdfiber import table_plot
+    from usdfiber.cli import UsageError
+
+    sigma = [float(s) for s in table.sigma_for(mu_a, diameter_scale * table.baked_diameter_um)]
+    ds = 1.0  # sigma_for has applied the diameter
+    try:
+        if args.figure == "grid":
+            fig = table_plot.scattering_grid(table, sigma, ds, theta_i=args.theta_i, psi=args.psi,
+                                             phi_i=args.phi_i, decades=args.decades)
+        elif args.figure == "longitudinal":
+            fig = table_plot.longitudinal_curves(table, sigma, ds, theta_i=args.theta_i, phi_i=args.phi_i,
+                                                 psi=args.psi[0])
+        else:
+            fig = table_plot.error_against_photons(table)
+    except ValueError as exc:
+        raise UsageError(f"{args.file}: {exc}") from None
+    try:
+        table_plot.save(fig, args.output)
+    except (ValueError, OSError) as exc:
+        raise UsageError(f"cannot write {args.output}: {getattr(exc, 'strerror', None) or exc}") from None
+    print(f"wrote {args.output} ({args.figure})")
     return 0

@@ -93,12 +93,13 @@ class TimeSelection:
 
 
 EVERYTHING = TimeSelection()
-_local = threading.local()
+#: Per-thread state of the running validation: ``times`` holds its time selection.
+thread_state = threading.local()
 
 
 def current_times() -> TimeSelection:
     """The time selection of the validation running on this thread."""
-    sel = getattr(_local, "times", EVERYTHING)
+    sel = getattr(thread_state, "times", EVERYTHING)
     return sel if isinstance(sel, TimeSelection) else sel.get()
 
 
@@ -112,12 +113,12 @@ def selected_times(sel) -> Iterator[None]:
     Thread-local because USD calls validators from its worker threads, each call holding
     the GIL for its whole duration.
     """
-    old = getattr(_local, "times", EVERYTHING)
-    _local.times = sel
+    old = getattr(thread_state, "times", EVERYTHING)
+    thread_state.times = sel
     try:
         yield
     finally:
-        _local.times = old
+        thread_state.times = old
 
 
 def times_for(attr) -> list[float | None]:
@@ -148,5 +149,6 @@ __all__ = [
     "current_times",
     "install_plugin_module",
     "selected_times",
+    "thread_state",
     "times_for",
 ]

@@ -24,7 +24,8 @@ Table codes, on non-abstract prims with FiberAPI and an authored fiber:table:
 
 - ``TableMissing`` (E): the asset path does not resolve to a file.
 - ``TableUnreadable`` (E): the file is not a valid usdfiber table (corrupt, truncated,
-  wrong format or version); the reason comes from :func:`usdfiber.table_format.read_header`.
+  wrong format or version, an array that fails its checksum); the reason comes from
+  :func:`usdfiber.table_format.read_header` with ``verify=True``.
 - ``TableStale`` (W): the table was baked for other traced-geometry parameters than the
   prim's (header geometry_key != ``FiberParams.geometry_key()``); it will be re-baked.
 """
@@ -36,13 +37,14 @@ from typing import Any, Sequence
 import numpy as np
 from pxr import Sdf, Usd
 
-from .problems import Problem, Severity, prim_check
+from usdfiber.spec.attributes import Fiber, Profile
+from usdfiber.validation.problems import Problem, Severity, prim_check
 
 PROFILE_API = "FiberProfileAPI"
 FIBER_API = "FiberAPI"
-POINTS = "fiberProfile:points"
-COUNTS = "fiberProfile:loopVertexCounts"
-TABLE = "fiber:table"
+POINTS = Profile.POINTS
+COUNTS = Profile.LOOP_VERTEX_COUNTS
+TABLE = Fiber.TABLE
 
 # ProfileError messages of usdfiber.bake.profiles -> (code, attribute); first match wins.
 # ProfileError carries no machine-readable kind, so its wording is matched (tests pin it).
@@ -106,8 +108,12 @@ def check_profile_prim(prim: Usd.Prim) -> list[Problem]:
         return [_problem(prim, "ProfileMissingPoints", err, missing,
                          f"{missing} is empty or not authored; expected the loops of the cross "
                          f"section (points in um, at least 3 per loop)")]
-    points = np.asarray(pts_value, dtype=np.float64).reshape(-1, 2)
+    points = np.asarray(pts_value, dtype=np.float64)
     counts = np.asarray(cnt_value, dtype=np.int64).reshape(-1)
+    if points.ndim != 2 or points.shape[1] != 2:
+        # Authored with another type (float3[]: the fiberSchema check reports WrongValueType);
+        # the loops cannot be read, so there is nothing more to say about them.
+        return []
 
     problems: list[Problem] = []
     if int(counts.sum()) != len(points) or (counts < 0).any():
@@ -134,7 +140,7 @@ def check_profile_prim(prim: Usd.Prim) -> list[Problem]:
     from usdfiber.bake.profiles import ProfileError, profile_from_polygons
 
     loops = split_loops(points, counts)
-    smooth_attr = prim.GetAttribute("fiberProfile:smooth")
+    smooth_attr = prim.GetAttribute(Profile.SMOOTH)
     smooth = bool(smooth_attr.Get()) if smooth_attr else False
     try:
         profile_from_polygons(loops, name="cross section", smooth=smooth)
@@ -169,7 +175,8 @@ _HEADER_CACHE_MAX = 256
 
 
 def read_table_header(path: str) -> dict[str, Any]:
-    """``table_format.read_header(path)``, cached by file identity; raises TableError."""
+    """``table_format.read_header(path, verify=True)`` (every array's checksum checked), cached
+    by file identity; raises TableError."""
     from usdfiber.table_format import TableError, read_header
 
     try:
@@ -180,7 +187,9 @@ def read_table_header(path: str) -> dict[str, Any]:
     hit = _HEADER_CACHE.get(key)
     if hit is None:
         try:
-            hit = read_header(path)
+            # Every checksum too: a table whose arrays are damaged cannot be rendered (the
+            # renderer verifies them), so check must say so; read once per file version.
+            hit = read_header(path, verify=True)
         except TableError as exc:
             hit = exc
         if len(_HEADER_CACHE) >= _HEADER_CACHE_MAX:
@@ -221,9 +230,11 @@ def check_table_prim(prim: Usd.Prim) -> list[Problem]:
     except TableError as exc:
         return [Problem("TableUnreadable", Severity.ERROR, path, TABLE,
                         f"fiber:table {resolved} cannot be used: {exc.reason}; expected a "
-                        f"table written by `usdfiber bake`", layer=_layer_of(attr))]
+                        f"table written by `usdfiber bake` (`usdfiber bake` on this stage bakes "
+                        f"the prim's tables into the table cache; then clear fiber:table or "
+                        f"point it at a good table)", layer=_layer_of(attr))]
 
-    from usdfiber.fiber_params import FiberParams, FiberParamsError
+    from usdfiber.spec.fiber import FiberParams, FiberParamsError
 
     try:
         params = FiberParams.from_prim(prim, Usd.TimeCode.EarliestTime())

@@ -31,9 +31,8 @@ from typing import Any
 
 from pxr import Sdf, UsdValidation
 
-from . import KEYWORD, PLUGIN_NAME, TimeSelection
-from . import _local as _times_local
-from .problems import CHECKS, PrimCheck, Problem, Severity
+from usdfiber.validation import KEYWORD, PLUGIN_NAME, TimeSelection, thread_state
+from usdfiber.validation.problems import CHECKS, PrimCheck, Problem, Severity
 
 PLUGIN_INFO = Path(__file__).resolve().parent / "plugInfo.json"
 # Infrastructure modules of the package; every other module may register checks.
@@ -126,6 +125,19 @@ def from_validation_error(error: UsdValidation.ValidationError) -> Problem:
                    info["text"], layer, info["time"])
 
 
+_TF_QUOTED = re.compile(r"Error in '[^']*'[^:]*: '(?P<msg>[^\n]*)'")
+
+
+def one_line_reason(exc: BaseException, limit: int = 300) -> str:
+    """``exc`` as one short line: the innermost message of a USD (Tf) error, else
+    ``Type: text`` with whitespace collapsed."""
+    text = str(exc)
+    quoted = [m.group("msg").strip() for m in _TF_QUOTED.finditer(text)]
+    reason = quoted[-1] if quoted else f"{type(exc).__name__}: {text}"
+    reason = " ".join(reason.split())
+    return reason if len(reason) <= limit else reason[:limit - 3] + "..."
+
+
 def _selection(time_range) -> TimeSelection:
     iv = time_range.GetInterval()
     return TimeSelection(float(iv.min), float(iv.max), bool(time_range.IncludesTimeCodeDefault()))
@@ -148,7 +160,7 @@ class _LazySelection:
 
 def _make_task(check: PrimCheck):
     fn = check.fn
-    local = _times_local
+    local = thread_state
 
     def task(prim, time_range) -> list:
         # Class prims are templates, not fiber geometry: what they hold is checked on the
@@ -166,7 +178,7 @@ def _make_task(check: PrimCheck):
         except Exception as exc:  # a bug in a check must not vanish into a Tf error
             problems = [Problem(
                 "CheckFailed", Severity.ERROR, str(prim.GetPath()), None,
-                f"check {check.name!r} failed on this prim: {type(exc).__name__}: {exc}")]
+                f"check {check.name!r} failed on this prim: {one_line_reason(exc)}")]
         finally:
             if previous is None:
                 del local.times
@@ -245,6 +257,6 @@ else:
 __all__ = [
     "KEYWORD", "PLUGIN_INFO", "decode_message", "declared_validators", "encode_message",
     "from_validation_error",
-    "load_check_modules", "plugin_info", "register_validators", "to_validation_error",
+    "load_check_modules", "one_line_reason", "plugin_info", "register_validators", "to_validation_error",
     "validator_name", "write_plugin_info",
 ]

@@ -36,16 +36,17 @@ import json
 import math
 import os
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Iterable, Iterator
 
 from pxr import Usd, UsdValidation, Work
 
-from usdfiber.stage_io import captured_stderr, composition_problems, open_stage
+from usdfiber.stage_io import (captured_stderr, composition_problems, open_stage,
+                               stage_metrics_problems)
 
-from . import KEYWORD
-from . import plugin as _plugin  # registers the validators (also without ``import usdFiber``)
-from .problems import Problem, Severity
+from usdfiber.validation import KEYWORD
+from usdfiber.validation import plugin as _plugin  # registers the validators (also without ``import usdFiber``)
+from usdfiber.validation.problems import Problem, Severity
 
 FORMAT, VERSION = "usdfiber-check", 1
 
@@ -176,12 +177,57 @@ def _one_worker() -> Iterator[None]:
         Work.SetConcurrencyLimit(previous)
 
 
+def _time_range(time: float | None):
+    return (UsdValidation.ValidationTimeRange() if time is None
+            else UsdValidation.ValidationTimeRange(Usd.TimeCode(float(time))))
+
+
+def variant_problems(stage: Usd.Stage, ctx: UsdValidation.ValidationContext,
+                     time: float | None = None) -> list[Problem]:
+    """The problems of every variant that is not selected (``usdfiber check --all-variants``).
+
+    Each variant of each variant set is selected in turn, in the session layer (the stage's
+    files are not touched; the selection is restored after), and the prim's subtree is
+    validated; a problem is reported with the variant set and the variant in its message.
+    Variant sets are varied one at a time, not in every combination: the cost is one
+    validation of the prim's subtree per variant that is not selected.
+    """
+    predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+    todo = []
+    for prim in stage.Traverse():
+        if not prim.HasVariantSets():
+            continue
+        sets = prim.GetVariantSets()
+        for name in sets.GetNames():
+            vset = sets.GetVariantSet(name)
+            selected = vset.GetVariantSelection()
+            todo.extend((prim.GetPath(), name, v) for v in vset.GetVariantNames() if v != selected)
+    out: list[Problem] = []
+    session = stage.GetSessionLayer()
+    for path, name, variant in todo:
+        with Usd.EditContext(stage, session):
+            stage.GetPrimAtPath(path).GetVariantSets().GetVariantSet(name).SetVariantSelection(variant)
+        try:
+            root = stage.GetPrimAtPath(path)
+            prims = list(Usd.PrimRange(root, predicate)) if root else []
+            problems = composition_problems(stage)
+            problems += [_plugin.from_validation_error(e)
+                         for e in ctx.Validate(prims, _time_range(time))]
+        finally:
+            with Usd.EditContext(stage, session):
+                stage.GetPrimAtPath(path).GetVariantSets().GetVariantSet(name).ClearVariantSelection()
+        where = f" (with variant set {name!r} of {path} = {variant!r})"
+        out.extend(replace(p, message=p.message + where) for p in problems)
+    return out
+
+
 def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
-                time: float | None = None) -> CheckReport:
+                time: float | None = None, all_variants: bool = False) -> CheckReport:
     """Check one stage with every usdFiber validator.
 
     ``time``: check values at that time code only (``usdfiber check --time``); by default
-    every default value and every authored time sample. A path that cannot be opened
+    every default value and every authored time sample. ``all_variants``: also check every
+    variant that is not selected (:func:`variant_problems`). A path that cannot be opened
     raises :class:`usdfiber.stage_io.StageOpenError`.
     """
     if isinstance(stage_or_path, Usd.Stage):
@@ -189,7 +235,7 @@ def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
     else:
         name = os.fspath(stage_or_path)
         stage = open_stage(name)
-    problems = composition_problems(stage)
+    problems = composition_problems(stage) + stage_metrics_problems(stage)
     ctx = validation_context()
     predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
     with captured_stderr(), _one_worker():  # USD's diagnostics: the report is the output
@@ -199,8 +245,14 @@ def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
             errors = ctx.Validate(stage, predicate,
                                   UsdValidation.ValidationTimeRange(Usd.TimeCode(float(time))))
     problems.extend(_plugin.from_validation_error(e) for e in errors)
+    if all_variants:
+        seen = {(p.code, p.prim, p.attribute, p.message) for p in problems}
+        with captured_stderr(), _one_worker():
+            problems.extend(p for p in variant_problems(stage, ctx, time)
+                            if (p.code, p.prim, p.attribute, p.message.rsplit(" (with variant set", 1)[0])
+                            not in seen)
     return CheckReport(name, sorted(set(problems), key=_sort_key))
 
 
 __all__ = ["CheckReport", "check_stage", "format_problem", "problem_to_dict",
-           "reports_to_json", "summary", "validation_context"]
+           "reports_to_json", "summary", "validation_context", "variant_problems"]

@@ -14,16 +14,39 @@ Codes (E = error, W = warning):
   pinned) or 3k (periodic).
 - ``CurvesCountsMismatch`` (E): sum(curveVertexCounts) != number of points.
 - ``PointsNotFinite`` (E): NaN or Inf in points.
+- ``PointsWrongType`` (E): points authored with another type than point3f[].
 - ``TransformNotFinite`` (E): NaN or Inf in the local-to-world transform.
 - ``CurveZeroLength`` (W): all points of a curve are equal (to float32 precision): the
   fiber has no tangent, so its frame and scattering are undefined.
 - ``WidthsInterpolationInvalid`` (E): widths interpolation is not constant / uniform /
-  varying / vertex.
+  varying / vertex (faceVarying is read as varying, with ``WidthsFaceVarying`` (W)).
+- ``WidthsConstantAssumed`` (W): one width value without interpolation metadata (USD's
+  fallback is vertex): read as constant, as Storm does.
+- ``WidthsElementSize`` (E): primvars:widths with an elementSize other than 1.
 - ``WidthsCountMismatch`` (E): widths count differs from what its interpolation needs.
 - ``WidthsNotFinite`` (E): NaN or Inf in widths.
-- ``WidthNotPositive`` (E): a width is zero or negative.
+- ``WidthNegative`` (E): a width is negative. Zero widths are valid: fibers taper to their
+  tips (USD's own basisCurves example does).
+- ``WidthNegativeInterpolated`` (W): cubic Catmull-Rom vertex widths that overshoot below
+  zero between the points: nothing is drawn there.
 - ``WidthMismatch`` (W): curve widths disagree with the fiber or yarn size (unit error);
   see :func:`width_scale_problem` for the rule.
+- ``NonUniformScale`` (W): the transform scales the axes differently; round tubes take
+  the geometric mean (:func:`usdfiber.geometry.curves.axis_scales`).
+- ``NormalsIgnored`` (W): normals authored (oriented ribbons): drawn as round tubes.
+- ``AnimatedOnly`` (W): points with time samples and no default value: nothing to draw at
+  the default time (a render without a frame picks one, see
+  :func:`usdfiber.stage_io.default_render_time`).
+
+Plain curves (BasisCurves without FiberAPI) are drawn by the renderer as grey tubes, and
+skipped, with a warning, when they cannot be drawn. The ``plainCurves`` check runs the very
+conversion the renderer runs (:func:`usdfiber.geometry.curves.curves_from_prim`) and reports
+the same as warnings: ``PlainCurves`` (drawn grey), ``PlainCurvesSkipped`` (cannot be drawn:
+why), ``PlainCurvesApproximated`` (drawn with an approximation: which).
+
+The width rule under a transform (the one the translator follows): authored widths are
+scaled by the transform (:func:`usdfiber.geometry.curves.axis_scales`); a fiber or yarn
+curve without widths is drawn as wide as the fiber or yarn is in the world.
 
 Minimum point counts and varying counts follow the UsdGeomBasisCurves documentation
 ("Segment Indexing" and its tables), see :func:`vertex_count_rule` and
@@ -32,6 +55,7 @@ Minimum point counts and varying counts follow the UsdGeomBasisCurves documentat
 from __future__ import annotations
 
 import math
+import re
 import weakref
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -39,11 +63,16 @@ from typing import Iterable, Sequence
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
-from . import current_times
-from .problems import Problem, Severity, prim_check
+from usdfiber.errors import PrimError
+from usdfiber.geometry.curves import axis_scales, curves_from_prim, negative_vertex_widths
+from usdfiber.spec.attributes import Fiber, Yarn
+from usdfiber.stage_io import animated_only
+from usdfiber.spec.yarn import yarn_diameter
+from usdfiber.validation import current_times
+from usdfiber.validation.problems import Problem, Severity, prim_check
 
-FIBER_API = "FiberAPI"
-YARN_API = "FiberYarnAPI"
+FIBER_API = Fiber.API
+YARN_API = Yarn.API
 
 CURVE_TYPES = ("linear", "cubic")
 CURVE_BASES = ("bezier", "bspline", "catmullRom")
@@ -168,28 +197,9 @@ def zero_length_curves(points: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return np.flatnonzero((extent <= _ZERO_LENGTH_RTOL * mag) & np.isfinite(mag))
 
 
-def nominal_yarn_diameter(plies: int, ply_radius: float) -> float:
-    """Diameter of ``plies`` touching circular plies of radius ``ply_radius`` around a centre.
-
-    Ply centres sit on a circle of radius r / sin(pi / N) (neighbours touch), so the yarn
-    diameter is 2 r (1 + 1 / sin(pi / N)); one ply is just 2 r.
-    """
-    if plies <= 1:
-        return 2.0 * ply_radius
-    return 2.0 * ply_radius * (1.0 + 1.0 / math.sin(math.pi / plies))
-
-
 # --------------------------------------------------------------------------------------
 # Helpers
 # --------------------------------------------------------------------------------------
-
-
-def is_fiber_curves(prim: Usd.Prim) -> bool:
-    """True for a non-abstract BasisCurves prim with FiberAPI or FiberYarnAPI."""
-    if prim.IsAbstract() or not prim.IsA(UsdGeom.BasisCurves):
-        return False
-    applied = prim.GetAppliedSchemas()
-    return FIBER_API in applied or YARN_API in applied
 
 
 def _list(indices: np.ndarray, noun: str = "curve") -> str:
@@ -306,17 +316,20 @@ def _array(attr: Usd.Attribute, time: Usd.TimeCode, dtype, width: int = 0) -> np
     return arr if arr.dtype == dtype else arr.astype(dtype)
 
 
-def _widths_source(prim: Usd.Prim) -> tuple[Usd.Attribute | None, UsdGeom.Primvar | None, str]:
+def _widths_source(prim: Usd.Prim
+                   ) -> tuple[Usd.Attribute | None, UsdGeom.Primvar | None, str, bool]:
     """The widths in effect: primvars:widths when authored (it takes precedence over widths
-    in Hydra), else the widths attribute. Returns (attribute, primvar, interpolation)."""
+    in Hydra), else the widths attribute. Returns (attribute, primvar, interpolation,
+    whether the interpolation is authored)."""
     attr = prim.GetAttribute("primvars:widths")
     if attr and attr.HasAuthoredValue():
         pv = UsdGeom.Primvar(attr)
-        return attr, pv, str(pv.GetInterpolation())
+        return attr, pv, str(pv.GetInterpolation()), pv.HasAuthoredInterpolation()
     attr = prim.GetAttribute("widths")
     if attr and attr.HasAuthoredValue():
-        return attr, None, str(UsdGeom.Curves(prim).GetWidthsInterpolation())
-    return None, None, "vertex"
+        return (attr, None, str(UsdGeom.Curves(prim).GetWidthsInterpolation()),
+                attr.HasMetadata("interpolation"))
+    return None, None, "vertex", False
 
 
 def _finite_matrix(m: Gf.Matrix4d) -> bool:
@@ -399,6 +412,14 @@ def transform_problems(prim: Usd.Prim) -> tuple[list[Problem], float]:
             if i == 0:
                 det = abs(m.GetDeterminant3())
                 scale = det ** (1.0 / 3.0) if det > 0 else float("nan")
+            if not _is_uniform_fast(m):
+                sv, mean, nonuniform = axis_scales(np.asarray(m)[:3, :3])
+                if nonuniform:
+                    col.add("NonUniformScale", Severity.WARNING, None,
+                            f"the local-to-world transform scales the axes by "
+                            f"{', '.join(f'{x:.6g}' for x in sv)}; round tubes cannot show that, "
+                            f"so widths are scaled by the geometric mean {mean:.6g}; expected a "
+                            f"uniform scale", t, sampled=bool(times))
             continue
         # Name the (outermost) prim whose own xform ops produce the non-finite matrix.
         chain = []
@@ -412,6 +433,15 @@ def transform_problems(prim: Usd.Prim) -> tuple[list[Problem], float]:
                 f"local-to-world transform contains NaN or Inf (from the xform ops of "
                 f"{culprit.GetPath()}); expected a finite matrix", t, sampled=bool(times))
     return col.problems(), scale
+
+
+def _is_uniform_fast(m: Gf.Matrix4d) -> bool:
+    """True for the common case of a transform without scale or with one uniform scale
+    (rows of the 3x3 part orthogonal and of equal length), without an SVD."""
+    a = np.asarray(m)[:3, :3]
+    g = a @ a.T
+    d = float(g[0, 0])
+    return d > 0 and bool(np.all(np.abs(g - d * np.eye(3)) <= 1e-9 * d))
 
 
 def _is_number(v: object) -> bool:
@@ -433,23 +463,23 @@ def expected_width(prim: Usd.Prim, time: Usd.TimeCode,
     which the value checks report).
 
     Fiber curves (FiberAPI without FiberYarnAPI): fiber:diameter * 1e-6 m, factor
-    FIBER_WIDTH_FACTOR (1.5). Yarn curves: :func:`nominal_yarn_diameter` of yarn:plies and
+    FIBER_WIDTH_FACTOR (1.5). Yarn curves: :func:`usdfiber.spec.yarn.yarn_diameter` of yarn:plies and
     yarn:ply:radius * 1e-3 m, factor YARN_WIDTH_FACTOR (4).
     """
     if YARN_API in (prim.GetAppliedSchemas() if applied is None else applied):
-        plies_attr = prim.GetAttribute("yarn:plies")
-        radius_attr = prim.GetAttribute("yarn:ply:radius")
+        plies_attr = prim.GetAttribute(Yarn.PLIES)
+        radius_attr = prim.GetAttribute(Yarn.PLY_RADIUS)
         plies = plies_attr.Get(time) if plies_attr else None
         radius_mm = radius_attr.Get(time) if radius_attr else None
         # Wrong types and ranges are the value check's to report; here they just opt out.
         if not (_is_number(plies) and _is_number(radius_mm)) or plies < 1 or not (
                 0 < radius_mm < math.inf):
             return None
-        d = nominal_yarn_diameter(int(plies), float(radius_mm) * 1e-3)
+        d = yarn_diameter(int(plies), float(radius_mm) * 1e-3)
         return WidthScale(d, YARN_WIDTH_FACTOR,
                           f"the nominal yarn diameter {d * 1e3:.4g} mm ({plies} plies of radius "
                           f"{radius_mm:g} mm: 2r(1 + 1/sin(pi/plies)))")
-    diam_attr = prim.GetAttribute("fiber:diameter")
+    diam_attr = prim.GetAttribute(Fiber.DIAMETER)
     diam_um = diam_attr.Get(time) if diam_attr else None
     if not _is_number(diam_um) or not (0 < diam_um < math.inf):
         return None
@@ -523,7 +553,7 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
     kind = curve_kind(curve_type, basis, wrap)
 
     counts_attr, points_attr = curves.GetCurveVertexCountsAttr(), curves.GetPointsAttr()
-    widths_attr, widths_pv, interp = _widths_source(prim)
+    widths_attr, widths_pv, interp, interp_authored = _widths_source(prim)
     counts_t, points_t = _samples(counts_attr), _samples(points_attr)
     widths_t = _samples(widths_attr) + (_samples(widths_pv.GetIndicesAttr()) if widths_pv else [])
     sampled_attrs = [a for a, ts in ((counts_attr, counts_t), (points_attr, points_t)) if ts]
@@ -532,6 +562,7 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
         sampled_attrs += [a for a in (widths_attr, indices_attr)
                           if a is not None and a.GetNumTimeSamples()]
     times = check_times([*counts_t, *points_t, *widths_t], sampled_attrs)
+    problems.extend(_animated_only_problems(prim, points_attr))
     # A problem carries a time only when the data it comes from is time-sampled.
     counts_s = bool(counts_t)
     points_s = counts_s or bool(points_t)
@@ -550,15 +581,40 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
             "WidthsMissing", warn, path, "widths",
             f"no widths authored, so the curves have no defined thickness{about}",
             layer=_layer_of(prim, Usd.TimeCode.Default())))
+    elif interp == "faceVarying":
+        problems.append(Problem(
+            "WidthsFaceVarying", warn, path, widths_attr.GetName(),
+            "widths interpolation is 'faceVarying', which curves do not define; read as "
+            "'varying' (one value per segment end); expected 'varying'",
+            layer=_layer_of(widths_attr, times[0])))
+        interp = "varying"
     elif interp not in WIDTH_INTERPOLATIONS:
         problems.append(Problem(
             "WidthsInterpolationInvalid", err, path, widths_attr.GetName(),
             f"widths interpolation is {interp!r}; expected one of "
             f"{', '.join(WIDTH_INTERPOLATIONS)}", layer=_layer_of(widths_attr, times[0])))
+    if widths_pv is not None and widths_pv.GetElementSize() != 1:
+        problems.append(Problem(
+            "WidthsElementSize", err, path, widths_attr.GetName(),
+            f"primvars:widths has elementSize {widths_pv.GetElementSize()}; expected 1 (one "
+            f"width per interpolated element)", layer=_layer_of(widths_attr, times[0])))
+    normals = [prim.GetAttribute(n) for n in ("normals", "primvars:normals")]
+    authored_normals = [a for a in normals if a and a.HasAuthoredValue()]
+    if authored_normals:
+        problems.append(Problem(
+            "NormalsIgnored", warn, path, authored_normals[0].GetName(),
+            "normals are authored (oriented ribbons), which the renderer cannot draw: the "
+            "curves are drawn as round tubes of the same width; expected no normals on fiber "
+            "curves", layer=_layer_of(authored_normals[0], times[0])))
 
     for t in times:
-        counts = _array(counts_attr, t, np.int64)
+        counts = _array(counts_attr, t, np.int64).reshape(-1)
         points = _array(points_attr, t, np.float32, 3)
+        if points.ndim != 2 or points.shape[1] != 3:
+            col.add("PointsWrongType", err, points_attr,
+                    f"points has values of shape {points.shape}; expected point3f[] (3D "
+                    f"points)", t, points_s)
+            continue
         n_points = int(points.shape[0])
         total = int(counts.sum())
 
@@ -610,10 +666,23 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
         else:
             widths = _array(widths_attr, t, np.float64)
         widths = widths.reshape(-1)
+        if widths.size == 0:
+            # The renderer treats empty widths as none: the fiber's own width.
+            col.add("WidthsMissing", warn, widths_attr,
+                    "widths is authored empty, so the curves have no defined thickness; the "
+                    "renderer draws them as wide as the fiber", t, widths_s)
+            continue
+        w_interp = interp
+        if widths.size == 1 and not interp_authored and interp != "constant":
+            col.add("WidthsConstantAssumed", warn, widths_attr,
+                    f"one width value without interpolation metadata (USD's fallback is "
+                    f"{interp!r}); read as constant, as Storm does; expected "
+                    f"interpolation = \"constant\"", t, widths_s)
+            w_interp = "constant"
 
         # Varying and vertex counts need valid curves; constant and uniform do not.
-        if interp in WIDTH_INTERPOLATIONS and (topo_ok or interp in ("constant", "uniform")):
-            expected = expected_widths_count(interp, counts, curve_type, basis, wrap)
+        if w_interp in WIDTH_INTERPOLATIONS and (topo_ok or w_interp in ("constant", "uniform")):
+            expected = expected_widths_count(w_interp, counts, curve_type, basis, wrap)
             if widths.size != expected:
                 how = {
                     "constant": "one value",
@@ -621,9 +690,10 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                     "varying": ("segments per curve, summed" if wrap == "periodic"
                                 else "segments + 1 per curve, summed"),
                     "vertex": "one per point",
-                }[interp]
+                }[w_interp]
+                topo_ok = False
                 col.add("WidthsCountMismatch", err, widths_attr,
-                        f"widths has {widths.size} values with {interp!r} interpolation; "
+                        f"widths has {widths.size} values with {w_interp!r} interpolation; "
                         f"expected {expected} ({how}, for {kind} curves)",
                         t, counts_s or widths_s)
 
@@ -634,17 +704,45 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                 col.add("WidthsNotFinite", err, widths_attr,
                         f"{_list(badw, 'width')} a NaN or Inf value; expected finite "
                         f"positive widths", t, widths_s)
-            if not wmin > 0:
-                nonpos = np.flatnonzero(widths <= 0)
-                if nonpos.size:
-                    col.add("WidthNotPositive", err, widths_attr,
-                            f"{_list(nonpos, 'width')} a value <= 0 (e.g. "
-                            f"{widths[nonpos[0]]:g}); expected positive widths", t, widths_s)
+            if not wmin >= 0:
+                neg = np.flatnonzero(widths < 0)
+                if neg.size:
+                    topo_ok = False
+                    col.add("WidthNegative", err, widths_attr,
+                            f"{_list(neg, 'width')} a negative value (e.g. "
+                            f"{widths[neg[0]]:g}); expected widths >= 0", t, widths_s)
+            elif (topo_ok and w_interp == "vertex" and curve_type == "cubic"
+                  and basis == "catmullRom" and math.isfinite(wmax)):
+                # Catmull-Rom widths can overshoot below zero next to a tapered tip: the
+                # renderer's conversion says where (and draws nothing there).
+                _negative_interpolation(col, widths, counts, wrap, widths_attr, t,
+                                        widths_s or counts_s)
             msg = width_scale_problem(prim, widths, t, scale, mpu, applied)
             if msg:
                 col.add("WidthMismatch", warn, widths_attr, msg, t, widths_s)
 
     return problems + col.problems() + xform_problems
+
+
+def _animated_only_problems(prim: Usd.Prim, points_attr: Usd.Attribute) -> list[Problem]:
+    if not animated_only(points_attr):
+        return []
+    return [Problem(
+        "AnimatedOnly", Severity.WARNING, str(prim.GetPath()), points_attr.GetName(),
+        "points has time samples and no default value, so nothing is drawn at the default "
+        "time; a render without a frame renders the stage's startTimeCode (when authored) or "
+        "the first time sample, with a warning; expected a frame to be chosen (render --frame)",
+        layer=_layer_of(points_attr, Usd.TimeCode(points_attr.GetTimeSamples()[0])))]
+
+
+def _negative_interpolation(col: "_Collector", widths: np.ndarray, counts: np.ndarray, wrap: str,
+                            widths_attr: Usd.Attribute, t: Usd.TimeCode, sampled: bool) -> None:
+    n, worst = negative_vertex_widths(widths, counts, "catmullRom", wrap)
+    if n:
+        col.add("WidthNegativeInterpolated", Severity.WARNING, widths_attr,
+                f"the interpolated width is negative on {n} segment(s) (worst radius "
+                f"{worst:.6g}): nothing is drawn there; expected widths that stay >= 0 "
+                f"(taper over more points, or use bspline)", t, sampled)
 
 
 @prim_check(
@@ -657,3 +755,69 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
 )
 def _check_fiber_curves(prim: Usd.Prim) -> Sequence[Problem]:
     return check_curves_prim(prim)
+
+
+# --------------------------------------------------------------------------------------
+# Plain curves: what the renderer draws grey, approximates or skips
+# --------------------------------------------------------------------------------------
+
+_ATTRIBUTE_IN_WARNING = re.compile(r"attribute '([^']+)'")
+
+
+def check_plain_curves_prim(prim: Usd.Prim) -> list[Problem]:
+    """Warnings for a BasisCurves prim without FiberAPI or FiberYarnAPI.
+
+    The renderer draws such curves as grey tubes through
+    :func:`usdfiber.geometry.curves.curves_from_prim` and skips, with a warning, those it
+    cannot draw: this check runs that same function at every time checked, so that it warns
+    exactly where the renderer skips or approximates.
+    """
+    if prim.IsAbstract() or not prim.IsA(UsdGeom.BasisCurves):
+        return []
+    applied = prim.GetAppliedSchemas()
+    if FIBER_API in applied or YARN_API in applied:
+        return []
+    warn = Severity.WARNING
+    path = str(prim.GetPath())
+    curves = UsdGeom.BasisCurves(prim)
+    attrs = [curves.GetCurveVertexCountsAttr(), curves.GetPointsAttr(), curves.GetWidthsAttr(),
+             prim.GetAttribute("primvars:widths"), prim.GetAttribute("primvars:widths:indices")]
+    attrs = [a for a in attrs if a]
+    data_times = [t for a in attrs for t in a.GetTimeSamples()]
+    xforms = _stage_xforms(prim.GetStage())
+    all_times = [*data_times, *xforms.sample_times(prim)]
+    sampled = [a for a in attrs if a.GetNumTimeSamples()]
+    col = _Collector(prim)
+    for t in check_times(all_times, sampled):
+        xform = np.asarray(xforms.local_to_world(prim, t))
+        try:
+            geom = curves_from_prim(prim, t, xform)
+        except (PrimError, ValueError) as exc:
+            attribute = getattr(exc, "attribute", None)
+            reason = exc.expected if isinstance(exc, PrimError) else str(exc)
+            col.add("PlainCurvesSkipped", warn, attribute,
+                    f"{reason}; BasisCurves without FiberAPI are drawn as grey tubes, and the "
+                    f"renderer skips these", t, bool(all_times))
+            continue
+        for text in geom.warnings:
+            m = _ATTRIBUTE_IN_WARNING.search(text)
+            col.add("PlainCurvesApproximated", warn, m.group(1) if m else None,
+                    text.split(": ", 1)[-1].split(": ", 1)[-1] if m else text.split(": ", 1)[-1],
+                    t, bool(all_times))
+    col_problems = col.problems() + _animated_only_problems(prim, curves.GetPointsAttr())
+    note = Problem(
+        "PlainCurves", warn, path, None,
+        "BasisCurves without FiberAPI: the renderer draws them as grey diffuse tubes; "
+        "expected FiberAPI (or a fiber class inherited) to render them as fibers",
+        layer=_layer_of(prim, Usd.TimeCode.Default()))
+    return [note, *col_problems]
+
+
+@prim_check(
+    "plainCurves",
+    "BasisCurves without FiberAPI, as the renderer draws them (grey tubes): warnings for "
+    "curves it skips (topology, widths, non-finite values) or approximates (non-uniform "
+    "scale, ribbons, faceVarying or single widths), from the renderer's own conversion.",
+)
+def _check_plain_curves(prim: Usd.Prim) -> Sequence[Problem]:
+    return check_plain_curves_prim(prim)

@@ -25,7 +25,7 @@ Codes (severity):
 - ``NonFiniteValue`` (error): NaN or infinity.
 - ``ValueOutOfRange`` (error): outside the documented valid range, including the
   cross-attribute ranges (cuticle height <= diameter / 4, a positive molar mass when the
-  extinction is molar).
+  extinction is molar, beta = arctan(Ra / l) within beta's range).
 - ``BeyondIndustryRange`` (warning): depth of shade above 4 % (valid up to 10 %).
 - ``UnknownToken`` (error): a token outside allowedTokens (the message lists them).
 - ``InvertedRange`` (error): yarn:fiber:migration with rho_min > rho_max.
@@ -49,22 +49,20 @@ from functools import lru_cache
 from typing import Any, Iterable
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, Vt
+from pxr import Gf, Sdf, Tf, Usd, Vt
 
-from . import current_times, times_for
-from .problems import Problem, Severity, prim_check
+from usdfiber.spec.attributes import (Fiber, Interval, Profile, Yarn, attributes,
+                                      industry_extinction_ranges, spectrum_coverage)
+from usdfiber.validation import current_times, times_for
+from usdfiber.validation.problems import Problem, Severity, prim_check
 
-FIBER, YARN, PROFILE = "FiberAPI", "FiberYarnAPI", "FiberProfileAPI"
+FIBER, YARN, PROFILE = Fiber.API, Yarn.API, Profile.API
 _NAMESPACES = {"fiber": FIBER, "yarn": YARN, "fiberProfile": PROFILE}
 _ON_CURVES_ONLY = (FIBER, YARN)
 _APIS = frozenset((FIBER, YARN, PROFILE))
 
 E, W = Severity.ERROR, Severity.WARNING
 
-# Dye classes' extinction per gram, L mg^-1 cm^-1 (paper Section 3.1).
-DYE_EXTINCTION_RANGE = {"reactive": (0.005, 0.0158), "disperse": (0.045, 0.246)}
-INDUSTRY_MAX_DEPTH_OF_SHADE = 4.0   # percent; valid up to 10
-SPECTRUM_COVERAGE = (400.0, 700.0)  # nm
 
 
 # --- schema facts -------------------------------------------------------------------------
@@ -102,29 +100,7 @@ def schema_defs() -> dict[str, AttrDef]:
     return out
 
 
-# --- ranges (schema.usda's documented valid ranges) ----------------------------------------
-
-@dataclass(frozen=True)
-class Interval:
-    """A closed, open or half-open interval of valid values."""
-
-    lo: float = -math.inf
-    hi: float = math.inf
-    lo_open: bool = False
-    hi_open: bool = False
-
-    def __contains__(self, x: float) -> bool:
-        if x < self.lo or (self.lo_open and x == self.lo):
-            return False
-        return not (x > self.hi or (self.hi_open and x == self.hi))
-
-    def __str__(self) -> str:
-        lo = "-inf" if self.lo == -math.inf else _num(self.lo)
-        hi = "inf" if self.hi == math.inf else _num(self.hi)
-        left = "(" if self.lo_open or self.lo == -math.inf else "["
-        right = ")" if self.hi_open or self.hi == math.inf else "]"
-        return f"{left}{lo}, {hi}{right}"
-
+# --- ranges (schema.usda's customData, through usdfiber.spec.attributes) ----------------------
 
 @dataclass(frozen=True)
 class Rule:
@@ -134,60 +110,69 @@ class Rule:
     what: str
     unit: str = ""
     components: tuple[str, ...] = ()  # for vectors: one label per component
+    industry: Interval | None = None  # beyond it: a warning
 
 
-def _r(lo, hi, what, unit="", lo_open=False, hi_open=False, components=()) -> Rule:
-    return Rule(Interval(lo, hi, lo_open, hi_open), what, unit, tuple(components))
-
-
-INF = math.inf
-RULES: dict[str, Rule] = {
-    # FiberAPI
-    "fiber:profile:variantCount": _r(1, 64, "a variant count"),
-    "fiber:diameter": _r(0, 1000, "a diameter", "um", lo_open=True),
-    "fiber:density": _r(0, 5, "a density", "g/cm3", lo_open=True),
-    "fiber:ior:parallel": _r(1, 3, "a refractive index"),
-    "fiber:ior:perpendicular": _r(1, 3, "a refractive index"),
-    "fiber:roughness:ra": _r(0, 1000, "a roughness Ra", "nm"),
-    "fiber:roughness:profileLength": _r(0, 10000, "a profile length", "nm", lo_open=True),
-    "fiber:roughness:beta": _r(0, 60, "a slope angle beta", "degrees"),
-    "fiber:cuticle:tilt": _r(0, 30, "a scale tilt", "degrees"),
-    "fiber:cuticle:height": _r(0, INF, "a scale height", "um"),  # and <= diameter / 4
-    "fiber:cuticle:spacing": _r(0, 1000, "a scale spacing", "um", lo_open=True),
-    "fiber:dye:extinction": _r(0, 10, "an extinction per gram", "L/(mg cm)",
-                               components=("R", "G", "B")),
-    "fiber:dye:molarExtinction": _r(0, 1e6, "a molar extinction", "L/(mol cm)",
-                                    components=("R", "G", "B")),
-    "fiber:dye:molarMass": _r(0, 1e5, "a molar mass", "g/mol", lo_open=True),
-    "fiber:dye:spectrum:wavelengths": _r(0, INF, "a wavelength", "nm", lo_open=True),
-    "fiber:dye:spectrum:values": _r(0, INF, "an extinction per gram", "L/(mg cm)"),
-    "fiber:dye:depthOfShade": _r(0, 10, "a depth of shade", "%"),
-    "fiber:rotation": _r(-INF, INF, "a rotation", "degrees"),
-    # FiberYarnAPI
-    "yarn:plies": _r(1, 12, "a ply count"),
-    "yarn:fibersPerPly": _r(1, 2000, "a fiber count per ply"),
-    "yarn:ply:linearDensity": _r(0, 10000, "a linear density", "dtex"),
-    "yarn:fiber:stapleLength": _r(0, 100, "a staple length", "cm"),
-    "yarn:ply:twist": _r(0, 100, "a twist", "turns/cm"),
-    "yarn:fiber:twist": _r(0, 100, "a twist", "turns/cm"),
-    "yarn:ply:radius": _r(0, 10, "a ply radius", "mm", lo_open=True),
-    "yarn:ply:compression": _r(0, 2, "a compression", lo_open=True,
-                               components=("e_N", "e_T")),
-    "yarn:fiber:migration": _r(0, 2, "a migration factor", components=("rho_min", "rho_max")),
-    "yarn:fiber:migrationPeriod": _r(0, 1000, "a migration period", "turns", lo_open=True),
-    "yarn:flyaway:hairDensity": _r(0, 1000, "a hair density", "per cm"),
-    "yarn:flyaway:hairLength": _r(0, INF, "a length", "mm", components=("mean", "std")),
-    "yarn:flyaway:loopDensity": _r(0, 1000, "a loop density", "per cm"),
-    "yarn:flyaway:loopHeight": _r(0, INF, "a height", "mm", components=("mean", "std")),
-    # FiberProfileAPI values are geometry, checked by the fiberProfile check (assets.py).
+# What each ranged value is, for messages ("expected a diameter in (0, 1000] um"); the ranges
+# and units themselves are the schema's.
+_WHAT: dict[str, str] = {
+    Fiber.PROFILE_VARIANT_COUNT: "a variant count",
+    Fiber.DIAMETER: "a diameter",
+    Fiber.DENSITY: "a density",
+    Fiber.IOR_PARALLEL: "a refractive index",
+    Fiber.IOR_PERPENDICULAR: "a refractive index",
+    Fiber.ROUGHNESS_RA: "a roughness Ra",
+    Fiber.ROUGHNESS_PROFILE_LENGTH: "a profile length",
+    Fiber.ROUGHNESS_BETA: "a slope angle beta",
+    Fiber.CUTICLE_TILT: "a scale tilt",
+    Fiber.CUTICLE_HEIGHT: "a scale height",
+    Fiber.CUTICLE_SPACING: "a scale spacing",
+    Fiber.DYE_EXTINCTION: "an extinction per gram",
+    Fiber.DYE_MOLAR_EXTINCTION: "a molar extinction",
+    Fiber.DYE_MOLAR_MASS: "a molar mass",
+    Fiber.DYE_SPECTRUM_WAVELENGTHS: "a wavelength",
+    Fiber.DYE_SPECTRUM_VALUES: "an extinction per gram",
+    Fiber.DYE_DEPTH_OF_SHADE: "a depth of shade",
+    Fiber.ROTATION: "a rotation",
+    Yarn.PLIES: "a ply count",
+    Yarn.FIBERS_PER_PLY: "a fiber count per ply",
+    Yarn.PLY_LINEAR_DENSITY: "a linear density",
+    Yarn.FIBER_STAPLE_LENGTH: "a staple length",
+    Yarn.PLY_TWIST: "a twist",
+    Yarn.FIBER_TWIST: "a twist",
+    Yarn.PLY_RADIUS: "a ply radius",
+    Yarn.PLY_COMPRESSION: "a compression",
+    Yarn.FIBER_MIGRATION: "a migration factor",
+    Yarn.FIBER_MIGRATION_PERIOD: "a migration period",
+    Yarn.FLYAWAY_HAIR_DENSITY: "a hair density",
+    Yarn.FLYAWAY_HAIR_LENGTH: "a length",
+    Yarn.FLYAWAY_LOOP_DENSITY: "a loop density",
+    Yarn.FLYAWAY_LOOP_HEIGHT: "a height",
 }
-# Per-component ranges where components differ.
-COMPONENT_RULES: dict[str, tuple[Interval, ...]] = {
-    "yarn:fiber:densityProfile": (Interval(0, 0.5, hi_open=True), Interval(0, INF)),
-}
-COMPONENT_LABELS = {"yarn:fiber:densityProfile": ("epsilon", "beta")}
-# Attributes whose range only matters for one extinction source (0 is their fallback).
-_ONLY_FOR_SOURCE = {"fiber:dye:molarMass": "molar"}
+# Said after an industry-range warning's limit.
+_INDUSTRY_NOTE = {Fiber.DYE_DEPTH_OF_SHADE: " (a deep shade)"}
+
+
+@lru_cache(maxsize=None)
+def rules() -> dict[str, Rule]:
+    """The range rule of every attribute with a ``validRange`` in the schema."""
+    return {name: Rule(spec.valid, _WHAT.get(name, "a value"), spec.unit, spec.components,
+                       spec.industry)
+            for name, spec in attributes().items() if spec.valid is not None}
+
+
+@lru_cache(maxsize=None)
+def component_rules() -> dict[str, tuple[tuple[Interval, ...], tuple[str, ...]]]:
+    """(ranges, labels) of vectors whose components have different ranges."""
+    return {name: (spec.component_valid, spec.components)
+            for name, spec in attributes().items() if spec.component_valid is not None}
+
+
+@lru_cache(maxsize=None)
+def _valid_when() -> dict[str, tuple[str, str]]:
+    """Attributes whose range holds only while another attribute has a token (``validWhen``)."""
+    return {name: tuple(spec.facts["validWhen"]) for name, spec in attributes().items()
+            if "validWhen" in spec.facts}
 
 
 # --- formatting -------------------------------------------------------------------------
@@ -434,9 +419,10 @@ def _scalar_problem(v: Any, rule: Rule) -> tuple[str, str] | None:
 
 def _vector_problem(name: str, v: Any, rule: Rule | None) -> tuple[str, str] | None:
     comps = _comps(v)
-    labels = COMPONENT_LABELS.get(name) or (rule.components if rule else ()) or tuple(
+    by_component = component_rules().get(name)
+    labels = (by_component[1] if by_component else ()) or (rule.components if rule else ()) or tuple(
         str(i) for i in range(len(comps)))
-    ranges = COMPONENT_RULES.get(name) or tuple(rule.valid for _ in comps)
+    ranges = by_component[0] if by_component else tuple(rule.valid for _ in comps)
     if not all(math.isfinite(c) for c in comps):
         return "NonFiniteValue", f"expected finite values for {', '.join(labels)}"
     bad = [(lab, rng) for c, lab, rng in zip(comps, labels, ranges) if c not in rng]
@@ -484,14 +470,14 @@ def _check_value(pv: PrimValues, name: str, t: float | None, v: Any) -> None:
                        f"{name} = {fmt_value(v)}{_at(t)}; expected one of: "
                        f"{', '.join(adef.allowed)}", t)
         return
-    rule = RULES.get(name)
+    rule = rules().get(name)
     if tname in ("float", "double", "half", "int"):
         if rule is None:
             return
-        src = _ONLY_FOR_SOURCE.get(name)
-        if src is not None and pv.get("fiber:dye:extinctionSource", t) != src:
-            # Unused unless the extinction source is ``src``: its fallback (0) lies outside
-            # the range, so only impossible values are reported.
+        when = _valid_when().get(name)
+        if when is not None and pv.get(when[0], t) != when[1]:
+            # Unused unless ``when`` holds (the molar mass without a molar extinction source):
+            # its fallback (0) lies outside the range, so only impossible values are reported.
             x = float(v)
             if not math.isfinite(x) or x < 0:
                 pv.finding("NonFiniteValue" if not math.isfinite(x) else "ValueOutOfRange", E,
@@ -503,19 +489,21 @@ def _check_value(pv: PrimValues, name: str, t: float | None, v: Any) -> None:
             code, tail = found
             pv.finding(code, E, name,
                        f"{name} = {fmt_value(v)}{_unit(rule.unit)}{_at(t)}; {tail}", t)
-        elif name == "fiber:dye:depthOfShade" and float(v) > INDUSTRY_MAX_DEPTH_OF_SHADE:
+        elif rule.industry is not None and float(v) not in rule.industry:
+            x, ind = float(v), rule.industry
+            limit = f"at most {_num(ind.hi)}" if x > ind.hi else f"at least {_num(ind.lo)}"
             pv.finding("BeyondIndustryRange", W, name,
-                       f"{name} = {fmt_value(v)} %{_at(t)} is beyond the industry range; "
-                       f"expected at most {_num(INDUSTRY_MAX_DEPTH_OF_SHADE)} % (a deep shade)", t)
+                       f"{name} = {fmt_value(v)}{_unit(rule.unit)}{_at(t)} is beyond the industry "
+                       f"range; expected {limit}{_unit(rule.unit)}{_INDUSTRY_NOTE.get(name, '')}", t)
     elif tname in ("color3f", "float2", "float3"):
-        if rule is None and name not in COMPONENT_RULES:
+        if rule is None and name not in component_rules():
             return
         found = _vector_problem(name, v, rule)
         if found:
             code, tail = found
             unit = _unit(rule.unit) if rule else ""
             pv.finding(code, E, name, f"{name} = {fmt_value(v)}{unit}{_at(t)}; {tail}", t)
-        elif name == "yarn:fiber:migration" and float(v[0]) > float(v[1]):
+        elif name == Yarn.FIBER_MIGRATION and float(v[0]) > float(v[1]):
             pv.finding("InvertedRange", E, name,
                        f"{name} = {fmt_value(v)}{_at(t)}; expected rho_min <= rho_max", t)
     elif tname.endswith("[]") and rule is not None:
@@ -544,74 +532,118 @@ def _finite(*vals: Any) -> bool:
 
 
 def _fiber_cross_checks(pv: PrimValues) -> None:
-    if pv.get("fiber:kind") == "custom" and pv.get("fiber:profile") == "auto":
-        pv.finding("ProfileRequired", E, "fiber:profile",
+    if pv.get(Fiber.KIND) == "custom" and pv.get(Fiber.PROFILE) == "auto":
+        pv.finding("ProfileRequired", E, Fiber.PROFILE,
                    'fiber:kind = "custom" with fiber:profile = "auto"; expected fiber:profile '
                    'to name a cross-section family or "user" (a custom fiber has no built-in '
-                   'cross section)', layer_from=("fiber:profile", "fiber:kind"))
+                   'cross section)', layer_from=(Fiber.PROFILE, Fiber.KIND))
 
-    # The cuticle scales' height is at most a quarter of the diameter.
-    if pv.authored("fiber:cuticle:height") or pv.authored("fiber:diameter"):
-        for t in pv.times("fiber:cuticle:height", "fiber:diameter"):
-            h, d = pv.get("fiber:cuticle:height", t), pv.get("fiber:diameter", t)
-            if _finite(h, d) and float(d) > 0 and float(h) > float(d) / 4:
-                pv.finding("ValueOutOfRange", E, "fiber:cuticle:height",
-                           f"fiber:cuticle:height = {_num(h)} um{_at(t)}; expected a scale "
-                           f"height in [0, fiber:diameter / 4] = [0, {_num(float(d) / 4)}] um",
-                           t, layer_from=("fiber:cuticle:height", "fiber:diameter"))
+    for name, (of, factor) in _relative_maxima().items():
+        _relative_maximum_check(pv, name, of, factor)
+    _derived_beta_check(pv)
     _dye_checks(pv)
 
 
-_DYE_NAMES = ("fiber:dye:class", "fiber:dye:depthOfShade", "fiber:dye:extinctionSource",
-              "fiber:dye:extinction", "fiber:dye:molarExtinction", "fiber:dye:molarMass",
-              "fiber:dye:spectrum:wavelengths", "fiber:dye:spectrum:values")
+def _derived_beta_check(pv: PrimValues) -> None:
+    """beta = arctan(Ra / l) (paper Sec. 3.1), when the roughness comes from Ra and the
+    profile length, must lie in beta's own valid range: l = 1e-40 nm makes beta 90 degrees,
+    which no table can be baked for."""
+    names = (Fiber.ROUGHNESS_SOURCE, Fiber.ROUGHNESS_RA, Fiber.ROUGHNESS_PROFILE_LENGTH)
+    if not any(pv.authored(n) for n in names):
+        return
+    rule = rules()[Fiber.ROUGHNESS_BETA]
+    for t in pv.times(*names):
+        if pv.get(Fiber.ROUGHNESS_SOURCE, t) != "ra":
+            continue
+        ra, plen = pv.get(Fiber.ROUGHNESS_RA, t), pv.get(Fiber.ROUGHNESS_PROFILE_LENGTH, t)
+        if not (_finite(ra, plen) and float(ra) >= 0 and float(plen) > 0):
+            continue  # the value checks report them
+        beta = math.degrees(math.atan(float(ra) / float(plen)))
+        if beta not in rule.valid:
+            pv.finding("ValueOutOfRange", E, Fiber.ROUGHNESS_PROFILE_LENGTH,
+                       f"fiber:roughness:ra = {_num(ra)} nm and {Fiber.ROUGHNESS_PROFILE_LENGTH} = "
+                       f"{_num(plen)} nm{_at(t)} give beta = arctan(Ra / l) = {_num(beta)} deg; "
+                       f"expected {rule.what} in {rule.valid}{_unit(rule.unit)}", t,
+                       layer_from=(Fiber.ROUGHNESS_PROFILE_LENGTH, Fiber.ROUGHNESS_RA,
+                                   Fiber.ROUGHNESS_SOURCE))
+
+
+@lru_cache(maxsize=None)
+def _relative_maxima() -> dict[str, tuple[str, float]]:
+    """Attributes at most a factor of another (``validMaxOf``, ``validMaxFactor``): the cuticle
+    scales' height is at most a quarter of the diameter."""
+    return {name: (spec.facts["validMaxOf"], float(spec.facts["validMaxFactor"]))
+            for name, spec in attributes(FIBER).items() if "validMaxOf" in spec.facts}
+
+
+def _relative_maximum_check(pv: PrimValues, name: str, of: str, factor: float) -> None:
+    if not (pv.authored(name) or pv.authored(of)):
+        return
+    rule = rules()[name]
+    unit = _unit(rule.unit)
+    inverse = 1.0 / factor
+    bound = f"{of} / {_num(inverse)}" if inverse == round(inverse) else f"{_num(factor)} {of}"
+    for t in pv.times(name, of):
+        h, d = pv.get(name, t), pv.get(of, t)
+        if _finite(h, d) and float(d) > 0 and float(h) > float(d) * factor:
+            pv.finding("ValueOutOfRange", E, name,
+                       f"{name} = {_num(h)}{unit}{_at(t)}; expected {rule.what} in "
+                       f"[0, {bound}] = [0, {_num(float(d) * factor)}]{unit}",
+                       t, layer_from=(name, of))
+
+
+_DYE_NAMES = (Fiber.DYE_CLASS, Fiber.DYE_DEPTH_OF_SHADE, Fiber.DYE_EXTINCTION_SOURCE,
+              Fiber.DYE_EXTINCTION, Fiber.DYE_MOLAR_EXTINCTION, Fiber.DYE_MOLAR_MASS,
+              Fiber.DYE_SPECTRUM_WAVELENGTHS, Fiber.DYE_SPECTRUM_VALUES)
 
 
 def _dye_checks(pv: PrimValues) -> None:
     if not any(pv.authored(n) for n in _DYE_NAMES):
         return
     for t in pv.times(*_DYE_NAMES):
-        cls = pv.get("fiber:dye:class", t)
-        dos = pv.get("fiber:dye:depthOfShade", t)
+        cls = pv.get(Fiber.DYE_CLASS, t)
+        dos = pv.get(Fiber.DYE_DEPTH_OF_SHADE, t)
         if cls == "none":
             if _finite(dos) and float(dos) > 0:
-                pv.finding("IgnoredValue", W, "fiber:dye:depthOfShade",
+                pv.finding("IgnoredValue", W, Fiber.DYE_DEPTH_OF_SHADE,
                            f'fiber:dye:depthOfShade = {_num(dos)} %{_at(t)} but fiber:dye:class '
                            f'= "none": the fiber is undyed and the depth of shade is ignored; '
                            f'expected a dye class (reactive, disperse, custom) or a depth of '
                            f'shade of 0', t,
-                           layer_from=("fiber:dye:depthOfShade", "fiber:dye:class"))
+                           layer_from=(Fiber.DYE_DEPTH_OF_SHADE, Fiber.DYE_CLASS))
             continue
-        source = pv.get("fiber:dye:extinctionSource", t)
-        peak, attr = None, "fiber:dye:extinction"
+        source = pv.get(Fiber.DYE_EXTINCTION_SOURCE, t)
+        peak, attr = None, Fiber.DYE_EXTINCTION
         if source == "perGram":
-            ext = pv.get("fiber:dye:extinction", t)
+            ext = pv.get(Fiber.DYE_EXTINCTION, t)
             if ext is not None and _finite(*_comps(ext)):
                 peak = max(_comps(ext))
         elif source == "molar":
-            attr = "fiber:dye:molarExtinction"
-            mass = pv.get("fiber:dye:molarMass", t)
+            attr = Fiber.DYE_MOLAR_EXTINCTION
+            mass = pv.get(Fiber.DYE_MOLAR_MASS, t)
             if _finite(mass) and float(mass) <= 0:
-                pv.finding("ValueOutOfRange", E, "fiber:dye:molarMass",
-                           f'fiber:dye:molarMass = {_num(mass)} g/mol{_at(t)} with '
-                           f'fiber:dye:extinctionSource = "molar"; expected a molar mass in '
-                           f'(0, 100000] g/mol', t,
-                           layer_from=("fiber:dye:molarMass", "fiber:dye:extinctionSource"))
-            me = pv.get("fiber:dye:molarExtinction", t)
+                mr = rules()[Fiber.DYE_MOLAR_MASS]
+                pv.finding("ValueOutOfRange", E, Fiber.DYE_MOLAR_MASS,
+                           f'fiber:dye:molarMass = {_num(mass)}{_unit(mr.unit)}{_at(t)} with '
+                           f'fiber:dye:extinctionSource = "molar"; expected {mr.what} in '
+                           f'{mr.valid}{_unit(mr.unit)}', t,
+                           layer_from=(Fiber.DYE_MOLAR_MASS, Fiber.DYE_EXTINCTION_SOURCE))
+            me = pv.get(Fiber.DYE_MOLAR_EXTINCTION, t)
             if _finite(mass) and float(mass) > 0 and me is not None and _finite(*_comps(me)):
                 # epsilon = epsilon_m / w_m in L g^-1 cm^-1; / 1000 for L mg^-1 cm^-1.
                 peak = max(_comps(me)) / float(mass) / 1000.0
         elif source == "spectrum":
-            attr = "fiber:dye:spectrum:values"
+            attr = Fiber.DYE_SPECTRUM_VALUES
             peak = _spectrum_checks(pv, t)
-        rng = DYE_EXTINCTION_RANGE.get(cls)
+        industry = industry_extinction_ranges().get(cls)
+        rng = (industry.lo, industry.hi) if industry else None
         # Relative slack of float32 precision: 0.246 authored reads back as 0.24600000679.
         if rng and peak is not None and not (rng[0] * (1 - 1e-6) <= peak <= rng[1] * (1 + 1e-6)):
             pv.finding("ExtinctionOutsideDyeRange", W, attr,
                        f"peak extinction per gram {_num(peak)} L/(mg cm){_at(t)} from {attr} is "
                        f"outside the {cls} dye range; expected {_num(rng[0])} to {_num(rng[1])} "
                        f"L/(mg cm) (paper Section 3.1) or fiber:dye:class = \"custom\"", t,
-                       layer_from=(attr, "fiber:dye:class"))
+                       layer_from=(attr, Fiber.DYE_CLASS))
 
 
 def _array(v: Any) -> np.ndarray:
@@ -619,7 +651,7 @@ def _array(v: Any) -> np.ndarray:
 
 
 def _spectrum_checks(pv: PrimValues, t: float | None) -> float | None:
-    wl_name, val_name = "fiber:dye:spectrum:wavelengths", "fiber:dye:spectrum:values"
+    wl_name, val_name = Fiber.DYE_SPECTRUM_WAVELENGTHS, Fiber.DYE_SPECTRUM_VALUES
     wl, vals = _array(pv.get(wl_name, t)), _array(pv.get(val_name, t))
     if len(wl) != len(vals):
         pv.finding("SpectrumLengthMismatch", E, val_name,
@@ -635,26 +667,34 @@ def _spectrum_checks(pv: PrimValues, t: float | None) -> float | None:
                    f"{wl_name}{_at(t)}: {_num(wl[i + 1])} nm follows {_num(wl[i])} nm at index "
                    f"{i + 1}; expected strictly increasing wavelengths", t)
         return None
-    lo, hi = SPECTRUM_COVERAGE
+    cover = spectrum_coverage()
+    lo, hi = cover.lo, cover.hi
     if len(wl) < 2 or wl[0] > lo or wl[-1] < hi:
         have = f"covers [{_num(wl[0])}, {_num(wl[-1])}] nm" if len(wl) else "is empty"
         pv.finding("SpectrumIncomplete", E, wl_name,
                    f'{wl_name} {have}{_at(t)} with fiber:dye:extinctionSource = "spectrum"; '
                    f'expected a spectrum covering {_num(lo)}-{_num(hi)} nm', t,
-                   layer_from=(wl_name, "fiber:dye:extinctionSource"))
+                   layer_from=(wl_name, Fiber.DYE_EXTINCTION_SOURCE))
         return None
     return float(vals.max()) if len(vals) else None
 
 
 def _profile_source_findings(pv: PrimValues) -> list[Finding]:
     """A "user" cross section needs FiberProfileAPI targets (reads the stage: not cached)."""
-    if pv.get("fiber:profile") != "user":
+    if pv.get(Fiber.PROFILE) != "user":
         return []
-    name = "fiber:profile:sources"
+    name = Fiber.PROFILE_SOURCES
     rel = pv.prim.GetRelationship(name)
-    targets = rel.GetTargets() if rel else []
     layer = strongest_layer(rel) if rel and rel.IsAuthored() else None
-    from_ = () if layer else ("fiber:profile",)
+    from_ = () if layer else (Fiber.PROFILE,)
+    try:
+        targets = rel.GetTargets() if rel else []
+    except Tf.ErrorException as exc:  # e.g. a target outside a reference's scope (Pcp)
+        from usdfiber.validation.plugin import one_line_reason
+
+        return [Finding("ProfileSourceMissing", E, name,
+                        f"{name} targets cannot be resolved ({one_line_reason(exc)}); expected "
+                        f"prims with FiberProfileAPI on this stage", None, from_, layer)]
     if not targets:
         return [Finding("MissingProfileSources", E, name,
                         f'fiber:profile = "user" but {name} has no targets; expected one or '

@@ -1,0 +1,188 @@
+"""Variance-reduction estimators of the baker: gain at equal error, side by side in one run.
+
+Part ``direction`` (the stratified estimator, per incoming direction): for each fiber and
+probe direction, a plain reference of ``16 x N`` photons (``--ref-factor``) in 4 independent
+batches (their spread gives the reference's own noise), then ``--repeats`` interleaved pairs
+of calls of N photons: plain (independent PCG32 numbers) and stratified (scrambled Sobol beam
+offset and first event). Error: relative L2 of p on the paper's 2 degree bins against the
+reference, with the reference's noise subtracted in quadrature (``e^2 = d^2 - e_ref^2``; the
+raw d is in the JSON). Gain = (t_plain e_plain^2) / (t_new e_new^2): the ratio of the times to
+reach the same error if the error falls as N^-1/2 (true for plain; the stratified error falls
+at least as fast, so the gain at more photons is at least this). The worst direction of a
+fiber sets its figure.
+
+Part ``table`` (reciprocity, which needs whole tables): box-filtered bakes of a table, plain
+and with reciprocity averaging, ``--table-photons`` per direction, against a plain box bake
+with 16x the photons; error per direction as above (the table's own bins, p at zero
+absorption), time = the whole bake (tracing and assembly).
+
+    python bench/bake_estimators.py                      # about 15 min on 2 idle cores
+    python bench/bake_estimators.py --quick              # smoke test
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from bake_common import RESULTS, Record, fiber_case, fmt_pct, rel_l2, solid_angles
+from bench_common import md_table
+
+DEFAULT_DIRECTIONS = "0,25;20,115;40,25;60,205;75,65;85,155"
+TABLE_CASES = {"polyester": 2.0, "silk": 30.0, "cotton": 30.0}
+
+
+def _p2(r) -> np.ndarray:
+    """p per steradian on the 2 degree bins (90 x 180), per photon that hit."""
+    from usdfiber.bake.binning import bin_direct
+
+    return bin_direct(r)
+
+
+def direction_part(args, rec) -> list[dict]:
+    from usdfiber.bake import tracer
+
+    dirs = [tuple(float(x) for x in d.split(",")) for d in args.directions.split(";") if d]
+    w = solid_angles()
+    N, M = 1 << args.photons_log2, (1 << args.photons_log2) * args.ref_factor
+    out = []
+    for name in args.fibers.split(","):
+        case = fiber_case(name)
+        fs = tracer.prepare(case["profile"], case["cuticle"])
+        kw = dict(eta=case["eta"], beta_deg=case["beta_deg"], cuticle=case["cuticle"], max_bounces=4096)
+        for smp in ("independent", "sobol"):        # compile both kernels before timing
+            tracer.trace(fs, 0.3, 0.2, 4096, seed=1, sampler=smp, **kw)
+        for j, (th, ph) in enumerate(dirs):
+            t_i, p_i = math.radians(th), math.radians(ph)
+            refs = [_p2(tracer.trace(fs, t_i, p_i, M // 4, seed=10_000 + 10 * j + b, **kw)) for b in range(4)]
+            ref = np.mean(refs, axis=0)
+            e_ref2 = float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+            runs: dict[str, list] = {"independent": [], "sobol": []}
+            for k in range(args.repeats):
+                for smp in ("independent", "sobol"):
+                    t0 = time.perf_counter()
+                    r = tracer.trace(fs, t_i, p_i, N, seed=20_000 + 100 * j + 2 * k + (smp == "sobol"), sampler=smp, **kw)
+                    dt = time.perf_counter() - t0
+                    d = rel_l2(_p2(r), ref, w)
+                    runs[smp].append({"seconds": dt, "d": d, "e": math.sqrt(max(d * d - e_ref2, 0.0))})
+            row = {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
+                   "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+            for smp, rs in runs.items():
+                row[smp] = {"seconds": float(np.median([x["seconds"] for x in rs])),
+                            "e": float(np.sqrt(np.mean([x["e"] ** 2 for x in rs]))),
+                            "d": [x["d"] for x in rs], "runs": rs}
+            a, b = row["independent"], row["sobol"]
+            row["gain"] = (a["seconds"] * a["e"] ** 2) / (b["seconds"] * b["e"] ** 2) if b["e"] > 0 else math.inf
+            # Raw distances include the reference's noise on both sides: closer to 1 than the truth.
+            d2a, d2b = np.mean(np.square(a["d"])), np.mean(np.square(b["d"]))
+            row["gain_raw"] = float((a["seconds"] * d2a) / (b["seconds"] * d2b))
+            print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['seconds']:.2f} s, "
+                  f"stratified {fmt_pct(b['e'])} {b['seconds']:.2f} s, gain {row['gain']:.2f}", flush=True)
+            out.append(row)
+    return out
+
+
+def _p_table(t) -> np.ndarray:
+    """(n_ti, n_pi, n_theta_o, n_phi_o) p at zero absorption, per steradian."""
+    g = t.grid
+    out = np.zeros((g.n_theta_i, g.n_phi_i, g.n_theta_o, g.n_phi_o))
+    for ti in range(g.n_theta_i):
+        for pi in range(g.n_phi_i):
+            b0 = int(t.band_start[ti, pi])
+            out[ti, pi, b0:b0 + t.n_band] = t.arrays["p"][ti, pi, 0].astype(np.float64) * float(t.arrays["p_scale"][ti, pi, 0])
+    return out
+
+
+def table_part(args, rec) -> list[dict]:
+    from usdfiber.bake.baker import bake_table
+    from usdfiber.bake.settings import BakeSettings
+
+    out = []
+    n = args.table_photons
+    for name in args.table_fibers.split(","):
+        case = fiber_case(name)
+        res = TABLE_CASES.get(name, 30.0)
+
+        def bake(photons, seed, est, batches=4):
+            st = BakeSettings(resolution_deg=res, photons=photons, batches=batches, seed=seed, incoming="box",
+                              estimator=est)
+            t0 = time.perf_counter()
+            t = bake_table(case["profile"], case["eta"], case["beta_deg"], case["cuticle"], st)
+            return t, time.perf_counter() - t0
+
+        bake(1024, 99, ())                                 # compile
+        ref_t, _ = bake(n * args.ref_factor, 1, ())
+        ref = _p_table(ref_t)
+        g = ref_t.grid
+        w = g.bin_solid_angles()
+        # The reference's own noise, from its batch error estimate (relative L2 per direction).
+        e_ref = ref_t.rel_error.astype(np.float64)
+        errs: dict[str, list] = {"plain": [], "reciprocity": []}
+        secs: dict[str, list] = {"plain": [], "reciprocity": []}
+        for k in range(args.repeats):
+            for label, est in (("plain", ()), ("reciprocity", ("reciprocity",))):
+                t, dt = bake(n, 100 + 2 * k + (label != "plain"), est)
+                p = _p_table(t)
+                d2 = (w * (p - ref) ** 2).sum(axis=(-2, -1)) / (w * ref ** 2).sum(axis=(-2, -1))
+                errs[label].append(np.maximum(d2 - e_ref ** 2, 0.0))
+                secs[label].append(dt)
+        e = {k: np.sqrt(np.mean(v, axis=0)) for k, v in errs.items()}
+        t_med = {k: float(np.median(v)) for k, v in secs.items()}
+        d2 = {k: np.mean(v, axis=0) + e_ref ** 2 for k, v in errs.items()}
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain_dir = (t_med["plain"] * e["plain"] ** 2) / (t_med["reciprocity"] * e["reciprocity"] ** 2)
+        # Raw distances (reference noise included on both sides): a lower bound of a gain > 1.
+        gain_raw = (t_med["plain"] * d2["plain"]) / (t_med["reciprocity"] * d2["reciprocity"])
+        row = {"fiber": name, "resolution_deg": res, "directions": int(g.n_theta_i * g.n_phi_i),
+               "photons_per_direction": n, "ref_photons_per_direction": n * args.ref_factor,
+               "seconds": t_med, "e_plain": e["plain"].tolist(), "e_reciprocity": e["reciprocity"].tolist(),
+               "e_ref": e_ref.tolist(), "gain_per_direction": gain_dir.tolist(),
+               "gain_raw_per_direction": gain_raw.tolist(),
+               "gain_worst": float(gain_raw.min()), "gain_median": float(np.median(gain_raw)),
+               "gain_corrected_median": float(np.nanmedian(gain_dir)),
+               "rms_plain": float(np.sqrt(np.mean(e["plain"] ** 2))),
+               "rms_reciprocity": float(np.sqrt(np.mean(e["reciprocity"] ** 2)))}
+        print(f"{name:10s} {res:g} deg: plain rms {fmt_pct(row['rms_plain'])} {t_med['plain']:.1f} s, "
+              f"reciprocity {fmt_pct(row['rms_reciprocity'])} {t_med['reciprocity']:.1f} s, "
+              f"raw-distance gain worst {row['gain_worst']:.2f} median {row['gain_median']:.2f}", flush=True)
+        out.append(row)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--fibers", default="polyester,silk,cotton")
+    ap.add_argument("--directions", default=DEFAULT_DIRECTIONS, help="'theta,phi;...' in degrees")
+    ap.add_argument("--photons-log2", type=int, default=18)
+    ap.add_argument("--ref-factor", type=int, default=16)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--table-fibers", default="polyester,silk,cotton")
+    ap.add_argument("--table-photons", type=int, default=16384)
+    ap.add_argument("--parts", default="direction,table")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    if args.quick:
+        args.photons_log2, args.repeats, args.table_photons = 14, 1, 1024
+        args.directions = "40,25;75,65"
+    rec = Record("estimators", args)
+    results = {}
+    if "direction" in args.parts:
+        rows = direction_part(args, rec)
+        results["direction"] = rows
+        table = [[r["fiber"], f"{r['theta_i']:g}, {r['phi_i']:g}", fmt_pct(r["independent"]["e"]),
+                  f"{r['independent']['seconds']:.2f}", fmt_pct(r["sobol"]["e"]), f"{r['sobol']['seconds']:.2f}",
+                  fmt_pct(r["e_ref"]), f"{r['gain']:.2f}", f"{r['gain_raw']:.2f}"] for r in rows]
+        print(md_table(["fiber", "theta_i, phi_i", "plain e", "plain s", "stratified e", "stratified s",
+                        "ref noise", "gain", "gain (raw d)"], table))
+    if "table" in args.parts:
+        results["table"] = table_part(args, rec)
+    rec.doc["results"] = results
+    rec.finish(RESULTS / ("estimators_quick.json" if args.quick else "estimators.json") if args.out is None
+               else __import__("pathlib").Path(args.out))
+
+
+if __name__ == "__main__":
+    main()

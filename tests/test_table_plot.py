@@ -1,0 +1,69 @@
+"""Readable figures of a table (usdfiber.table_plot, `usdfiber table plot --figure`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import usdfiber  # noqa: F401
+from usdfiber import table_plot
+from usdfiber.cli import main
+
+
+@pytest.fixture(scope="module")
+def table_file(circle_table, tmp_path_factory):
+    path = tmp_path_factory.mktemp("plot") / "circle.npz"
+    circle_table.save(path)
+    return path
+
+
+def _png(path):
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(path))
+    return buf.spec(), np.asarray(buf.get_pixels(oiio.FLOAT))
+
+
+def test_longitudinal_curves_peak_on_the_cone_and_integrate_to_the_albedo(circle_table):
+    thetas = (-60.0, -30.0, 0.0, 30.0)
+    sigma = [0.05, 0.2, 0.5]
+    fig = table_plot.longitudinal_curves(circle_table, sigma, theta_i=thetas)
+    lines = [ln for ln in fig.axes[0].get_lines() if len(ln.get_xdata()) > 2]
+    assert len(lines) == len(thetas)
+    res = circle_table.grid.resolution_deg
+    rec = circle_table.recolour(sigma)
+    for ti, ln in zip(thetas, lines):
+        x, m = np.asarray(ln.get_xdata()), np.asarray(ln.get_ydata())
+        # A smooth round fiber scatters into the specular cone theta_o = -theta_i.
+        assert abs(x[np.argmax(m)] + ti) <= 1.5 * res
+        # int M dtheta_o = Lambda (p integrates to 1 over the sphere): luminance of the albedo.
+        total = m.sum() * math.radians(180.0 / len(m))
+        lum = float(rec.albedo_at(math.radians(ti), 0.0) @ [0.2126, 0.7152, 0.0722])
+        assert total == pytest.approx(lum, rel=0.01)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_cli_figures(table_file, tmp_path, capsys):
+    grid = tmp_path / "grid.png"
+    assert main(["table", "plot", str(table_file), "--figure", "grid", "--theta-i", "-45", "0", "--psi", "0", "90",
+                 "--phi-i", "0", "--mu-a", "0.01", "0.05", "0.1", "-o", str(grid)]) == 0
+    spec, px = _png(grid)
+    assert spec.width > 600 and spec.height > 300         # a figure with axes, not 72 rows of bins
+    assert px[..., :3].std() > 0.1                          # not blank
+    for fig in ("longitudinal", "errors"):
+        out = tmp_path / f"{fig}.png"
+        assert main(["table", "plot", str(table_file), "--figure", fig, "--theta-i", "0", "30", "--phi-i", "0",
+                     "-o", str(out)]) == 0
+        spec, px = _png(out)
+        assert spec.width > 400 and px[..., :3].std() > 0.05
+    capsys.readouterr()
+    assert main(["table", "plot", str(table_file), "--figure", "grid", "--theta-i", "0", "--phi-i", "0",
+                 "-o", str(tmp_path / "x.unknown")]) == 2
+    err = capsys.readouterr().err
+    assert "x.unknown" in err and err.count("\n") == 1
+    assert main(["table", "plot", str(table_file), "--figure", "grid", "--theta-i", "100", "--phi-i", "0",
+                 "-o", str(grid)]) == 2
+    assert "within [-90, 90]" in capsys.readouterr().err

@@ -1,0 +1,129 @@
+"""``usdfiber material STAGE [-o OUT] [--mtlx FILE]``: fitted materials for Hydra and MaterialX.
+
+For every distinct fiber look of the stage (fiber and yarn curves with FiberAPI) writes a
+``UsdShade.Material`` with a MaterialX ``chiang_hair_bsdf`` network fitted to the fiber's
+tables for its dye (the UsdMtlx form that Hydra render delegates and Omniverse read), a
+``UsdPreviewSurface`` fallback and ``primvars:displayColor`` (the mean colour under white
+light) for Storm, and binds it to the curves. Running again updates the same prims.
+
+Without ``-o`` the stage's root layer is edited in place (it must be writable). With
+``-o OUT`` the stage is left alone and OUT is written as a layer that sublayers it and holds
+only the materials, bindings and colours (open OUT to see both). ``--mtlx FILE`` also writes
+the looks as a standalone MaterialX document. Every MaterialX document is validated with
+MaterialX's ``validate()``.
+
+Tables missing from the cache (``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else
+``~/.cache/usdfiber``) are baked at the render's quality (``--bake-resolution`` 6 degrees,
+``--bake-photons`` 100000) unless ``--no-bake``; fits are cached beside them.
+
+Exit status: 0 written, 2 bad input (one line on stderr).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import replace
+from pathlib import Path
+
+__all__ = ["register", "run"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.commands.arg_types import finite_float
+    from usdfiber.commands.bake import one_line_errors
+
+    p = sub.add_parser("material", help="write fitted MaterialX / Storm materials for the fibers of a stage",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("stage", metavar="STAGE")
+    p.add_argument("-o", "--output", default=None, metavar="OUT",
+                   help="write a layer sublayering STAGE instead of editing STAGE")
+    p.add_argument("--mtlx", default=None, metavar="FILE", help="also write a standalone .mtlx document")
+    p.add_argument("--cache-dir", default=None, metavar="DIR", help="table cache (default: the user's)")
+    p.add_argument("--bake-resolution", type=finite_float, default=None, metavar="DEG",
+                   help="bin size of tables baked here (default: 6)")
+    p.add_argument("--bake-photons", type=int, default=None, metavar="N",
+                   help="photons per direction of tables baked here (default: 100000)")
+    p.add_argument("--no-bake", action="store_true", help="fail instead of baking missing tables")
+    p.set_defaults(func=run)
+    one_line_errors(p)
+
+
+def _writable(path: Path) -> bool:
+    return os.access(path, os.W_OK) and os.access(path.parent if str(path.parent) else Path("."), os.W_OK)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pxr import Sdf, Usd
+
+    from usdfiber.bcsdf import TableCache
+    from usdfiber.cli import UsageError
+    from usdfiber.stage_io import StageOpenError, open_stage
+    from usdfiber.translators.materialx.document import DocumentError, look_document, write_document
+    from usdfiber.translators.materialx.looks import MATERIAL_BAKE_SETTINGS, LookError
+    from usdfiber.translators.materialx.usd_material import author_materials
+
+    src = Path(args.stage)
+    try:
+        stage = open_stage(src)
+    except StageOpenError as exc:
+        raise UsageError(str(exc)) from None
+    settings = MATERIAL_BAKE_SETTINGS
+    try:
+        if args.bake_resolution is not None:
+            settings = replace(settings, resolution_deg=args.bake_resolution)
+        if args.bake_photons is not None:
+            settings = replace(settings, photons=args.bake_photons)
+    except ValueError as exc:
+        raise UsageError(f"bake settings: {exc}") from None
+
+    if args.output:
+        out = Path(args.output)
+        if out.resolve() == src.resolve():
+            raise UsageError(f"{out}: -o names the stage itself; leave -o out to edit it in place")
+        if out.exists() and not _writable(out) or not out.exists() and not os.access(out.parent.resolve(), os.W_OK):
+            raise UsageError(f"{out}: cannot write (read-only file or directory)")
+        layer = Sdf.Layer.FindOrOpen(str(out)) if out.exists() else None
+        if layer is None:
+            layer = Sdf.Layer.CreateNew(str(out))
+            if layer is None:
+                raise UsageError(f"{out}: cannot create a USD layer there (is the extension .usda, .usdc or .usd?)")
+        rel = os.path.relpath(src.resolve(), out.resolve().parent)
+        if rel not in layer.subLayerPaths:
+            layer.subLayerPaths.append(rel)
+        root = stage.GetRootLayer()
+        layer.defaultPrim = layer.defaultPrim or root.defaultPrim
+        stage = Usd.Stage.Open(layer)
+        stage.SetEditTarget(layer)
+        target = out
+    else:
+        if not _writable(src):
+            raise UsageError(f"{src}: cannot write (read-only file); use -o OUT to write the materials to another layer")
+        target = src
+
+    def progress(msg: str) -> None:
+        print(f"  {msg}", flush=True)
+
+    try:
+        report = author_materials(stage, cache=TableCache(args.cache_dir), settings=settings,
+                                  bake_missing=not args.no_bake, progress=progress)
+    except LookError as exc:
+        raise UsageError(str(exc)) from None
+    mtlx_path = None
+    if args.mtlx:
+        looks = [(Path(p).name, samples[0][1]) for p, samples in report.looks.items()]
+        try:
+            mtlx_path = write_document(look_document(looks), args.mtlx)
+        except (DocumentError, OSError) as exc:
+            raise UsageError(f"{args.mtlx}: {exc}") from None
+    stage.GetEditTarget().GetLayer().Save()
+    for path, samples in report.looks.items():
+        lk = samples[0][1]
+        print(f"{path}: {lk.kind}, colour {', '.join(f'{c:.4f}' for c in lk.colour)} (linear Rec.709), "
+              f"fit error (relative L2) {', '.join(f'{e:.3f}' for e in lk.rel_l2)}"
+              + (f", {len(samples)} time samples" if len(samples) > 1 else ""))
+    for note in report.notes:
+        print(f"note: {note}")
+    print(f"wrote {target}: {len(report.materials)} material(s) bound to {len(report.bound)} prim(s)"
+          + (f", {len(report.removed)} unused removed" if report.removed else "")
+          + (f"; {mtlx_path}" if mtlx_path else ""))
+    return 0

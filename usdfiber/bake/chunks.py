@@ -1,0 +1,117 @@
+"""Resume chunks: the finished incoming directions of a bake, one file each.
+
+A bake given a resume directory (the cache's ``partial/<key>/``, or a large bake's scratch
+directory) writes every finished incoming direction there before the next group starts, so
+an interruption loses at most the group in flight. The directory holds:
+
+* ``bake.json``: the bake's inputs and settings (its *fingerprint*, canonical JSON). A bake
+  with another fingerprint removes the chunks it finds: they cannot be reused.
+* ``d<ti>_<pi>.npz``: one chunk per direction, a :mod:`usdfiber.table_format` container of
+  format :data:`CHUNK_FORMAT` (written atomically, a checksum per array) whose header names
+  the bake key (sha256 of the fingerprint) and the direction ``[ti, pi]``; arrays ``rows``
+  (the theta_o rows held), ``H`` and ``G`` (the sums of ``exp(-s_k L)`` and ``L exp(-s_k L)``
+  per bin and level, :mod:`usdfiber.bake.statistics`) and ``scalars`` (:data:`SCALARS`).
+
+:meth:`ResumeDirectory.load` is the one loader, and it verifies: a chunk that is unreadable,
+damaged, of another bake or of another direction is reported (a RuntimeWarning naming the
+file and the reason) and its direction is traced again.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from usdfiber import table_format
+
+__all__ = ["CHUNK_FORMAT", "SCALARS", "ResumeDirectory", "chunk_name"]
+
+#: The container format name of a chunk file.
+CHUNK_FORMAT = "usdfiber-bake-chunk"
+#: The per-direction numbers of a chunk's ``scalars`` array, in order.
+SCALARS = ("norm", "photons", "n_hit", "n_cut", "leaks", "misses", "rel_error", "seconds")
+_INTEGER_SCALARS = ("photons", "n_hit", "n_cut", "leaks")
+
+
+def chunk_name(ti: int, pi: int) -> str:
+    """File name of the chunk of incoming node (ti, pi)."""
+    return f"d{ti:04d}_{pi:04d}.npz"
+
+
+class ResumeDirectory:
+    """The chunks of one bake in ``path`` (created; chunks of another bake are removed)."""
+
+    def __init__(self, path: str | os.PathLike[str], fingerprint: Mapping[str, Any]) -> None:
+        self.path = Path(path)
+        text = json.dumps(fingerprint, sort_keys=True)
+        #: sha256 of the fingerprint: every chunk names it.
+        self.key = hashlib.sha256(text.encode("utf-8")).hexdigest()
+        self._prepare(text)
+
+    def _prepare(self, text: str) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)
+        meta = self.path / "bake.json"
+        if meta.exists():
+            try:
+                old = meta.read_text()
+            except OSError:
+                old = ""
+            if old == text:
+                return
+            # Another bake's chunks: they cannot be reused.
+            for f in self.path.glob("d*_*.npz"):
+                f.unlink(missing_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".bake.", suffix=".tmp", dir=self.path)
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, meta)
+
+    def chunk_path(self, ti: int, pi: int) -> Path:
+        """Where the chunk of (ti, pi) is kept."""
+        return self.path / chunk_name(ti, pi)
+
+    def has(self, ti: int, pi: int) -> bool:
+        """Whether a chunk file exists for (ti, pi) (it is verified when loaded)."""
+        return self.chunk_path(ti, pi).exists()
+
+    def save(self, ti: int, pi: int, data: Mapping[str, Any]) -> None:
+        """Write the finished direction ``data`` atomically (the mapping of
+        :meth:`~usdfiber.bake.statistics.DirectionStatistics.result`)."""
+        arrays = {
+            "rows": np.asarray(data["rows"], dtype=np.int64),
+            "H": data["H"], "G": data["G"],
+            "scalars": np.array([data[k] for k in SCALARS], dtype=np.float64),
+        }
+        header = {"bake_key": self.key, "direction": [int(ti), int(pi)], "scalars": list(SCALARS)}
+        table_format.write_table(self.chunk_path(ti, pi), header, arrays, container=CHUNK_FORMAT)
+
+    def load(self, ti: int, pi: int) -> dict[str, Any] | None:
+        """The chunk of (ti, pi), verified; None (with a RuntimeWarning) when it cannot be used."""
+        path = self.chunk_path(ti, pi)
+        try:
+            header, z = table_format.read_table(path, container=CHUNK_FORMAT)
+            if header.get("bake_key") != self.key:
+                raise ValueError("written by another bake")
+            if header.get("direction") != [int(ti), int(pi)]:
+                raise ValueError(f"holds direction {header.get('direction')}, not {[ti, pi]}")
+            sc = z["scalars"]
+            rows = tuple(int(x) for x in z["rows"])
+            if sc.shape != (len(SCALARS),) or len(rows) != 2:
+                raise ValueError("scalars or rows have the wrong length")
+            if z["H"].shape != z["G"].shape or z["H"].shape[1] != rows[1] - rows[0]:
+                raise ValueError("rows and H disagree")
+        except (table_format.TableError, KeyError, ValueError, IndexError) as exc:
+            reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
+            warnings.warn(f"{path}: unusable partial bake chunk ({reason}); tracing that direction again",
+                          RuntimeWarning, stacklevel=2)
+            return None
+        data: dict[str, Any] = {"rows": rows, "H": z["H"], "G": z["G"]}
+        for name, value in zip(SCALARS, sc):
+            data[name] = int(value) if name in _INTEGER_SCALARS else float(value)
+        return data

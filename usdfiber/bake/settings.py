@@ -1,0 +1,155 @@
+"""How a table is baked (:class:`BakeSettings`) and the baker's error (:class:`BakeError`).
+
+Every field of the settings changes the baked table, so all of them (with the baker's
+version and the built-in profiles' resolution) enter the cache key through
+:meth:`BakeSettings.result_inputs`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from usdfiber.bake.absorption import DEFAULT_LEVELS
+from usdfiber.bake.grid import Grid
+
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "RENDER_BAKE_SETTINGS", "BakeError", "BakeSettings"]
+
+#: Bumped when the baker's algorithm changes what it writes (part of the cache key).
+BAKER_VERSION = 1
+#: Vertices of the outer loop of built-in cross sections (part of the cache key).
+BUILTIN_PROFILE_VERTICES = 512
+
+
+#: Variance-reduction estimators a bake may combine (``BakeSettings.estimator``; none is the
+#: plain estimator): "stratified", the beam offset and the first boundary event from
+#: Owen-scrambled Sobol points per direction and batch (:mod:`usdfiber.bake.sampling`);
+#: "reciprocity", sigma(i, o) and sigma(o, i) averaged with inverse-variance weights
+#: (:mod:`usdfiber.bake.reciprocity`, box-filtered tables only). Both trace every direction
+#: with its own random streams.
+ESTIMATORS = ("reciprocity", "stratified")
+
+
+class BakeError(ValueError):
+    """A bake that cannot be done as asked (the message is one line)."""
+
+
+@dataclass(frozen=True)
+class BakeSettings:
+    """How a table is baked. Every field changes the result (and so the cache key).
+
+    ``resolution_deg``: bin size (divides 90; the paper uses 2). ``photons``: photons per
+    incoming direction, or the first amount when ``target_error`` is set (a relative L2
+    error of p; batches are then added up to ``max_photons`` per direction). ``batches``:
+    independent batches per direction for the error estimate (>= 2). ``levels``: absorption
+    levels as optical depths across the diameter (sigma_a * D), starting at 0.
+    ``band_tail``: mass per direction that may be dropped at the theta_o extremes.
+    ``storage``: "float16" or "float32" for the per-bin arrays. ``incoming``: "centre"
+    traces each incoming direction at its bin centre (the paper's sampling, for
+    interpolation between nodes); "box" spreads the batches over the incoming bin
+    (stratified, uniform in solid angle, weighted by ``W(phi) cos(theta)``), so that each
+    entry averages over both bins and the table is reciprocal bin for bin. ``estimator``:
+    the variance-reduction estimators used (names from :data:`ESTIMATORS`; empty: the plain
+    estimator, whose tables and cache keys do not mention it).
+    """
+
+    resolution_deg: float = 2.0
+    photons: int = 1_000_000
+    target_error: float | None = None
+    max_photons: int = 64_000_000
+    batches: int = 8
+    max_bounces: int = 4096
+    seed: int = 0
+    levels: tuple[float, ...] = DEFAULT_LEVELS
+    band_tail: float = 1e-5
+    storage: str = "float16"
+    incoming: str = "centre"
+    estimator: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
+        for name, kind in (("resolution_deg", float), ("photons", int), ("max_photons", int), ("batches", int),
+                           ("max_bounces", int), ("seed", int), ("band_tail", float)):
+            value = getattr(self, name)
+            try:
+                canonical = kind(value)
+            except (TypeError, ValueError, OverflowError):
+                raise BakeError(f"{name} must be a number, got {value!r}") from None
+            if kind is int and canonical != value:
+                raise BakeError(f"{name} must be an integer, got {value!r}")
+            object.__setattr__(self, name, canonical)
+        if self.target_error is not None:
+            object.__setattr__(self, "target_error", float(self.target_error))
+        if not 0 <= self.seed < 2 ** 32:
+            raise BakeError(f"seed must be an integer from 0 to 2^32 - 1, got {self.seed}")
+        Grid(self.resolution_deg, True, False)  # validates the resolution
+        if int(self.photons) < 1:
+            raise BakeError(f"photons must be >= 1, got {self.photons}")
+        if self.target_error is not None and not (0 < float(self.target_error) < 1):
+            raise BakeError(f"target error must be in (0, 1), got {self.target_error}")
+        if int(self.batches) < 2:
+            raise BakeError(f"batches must be >= 2 (the error estimate needs a variance), got {self.batches}")
+        if int(self.max_bounces) < 1:
+            raise BakeError(f"max_bounces must be >= 1, got {self.max_bounces}")
+        lv = tuple(float(x) for x in self.levels)
+        if not lv or lv[0] != 0.0 or any(b <= a for a, b in zip(lv, lv[1:])) or not all(map(math.isfinite, lv)):
+            raise BakeError(f"levels must start at 0 and increase, got {list(self.levels)}")
+        object.__setattr__(self, "levels", lv)
+        if not (0.0 <= float(self.band_tail) < 0.1):
+            raise BakeError(f"band_tail must be in [0, 0.1), got {self.band_tail}")
+        if self.storage not in ("float16", "float32"):
+            raise BakeError(f"storage must be float16 or float32, got {self.storage!r}")
+        if self.incoming not in ("centre", "box"):
+            raise BakeError(f"incoming must be 'centre' or 'box', got {self.incoming!r}")
+        est = (self.estimator,) if isinstance(self.estimator, str) else tuple(self.estimator)
+        est = tuple(sorted({str(e) for e in est if str(e) not in ("", "plain")}))
+        unknown = [e for e in est if e not in ESTIMATORS]
+        if unknown:
+            raise BakeError(f"unknown estimator {unknown[0]!r}: expected some of {', '.join(ESTIMATORS)} or 'plain'")
+        if "reciprocity" in est and self.incoming != "box":
+            # Centre-sampled nodes against bin-averaged outputs are not reciprocal bin for bin:
+            # averaging the two halves would mix two different quantities (a bias).
+            raise BakeError("estimator 'reciprocity' needs incoming='box' (only box-filtered tables "
+                            "are reciprocal bin for bin)")
+        object.__setattr__(self, "estimator", est)
+
+    @property
+    def photons_per_batch(self) -> int:
+        """Photons of one batch of one direction (``photons / batches``, rounded up)."""
+        return max(1, int(math.ceil(int(self.photons) / int(self.batches))))
+
+    def table_bytes(self) -> int:
+        """Peak bytes of baking one table with these settings, an upper bound: the assembled
+        per-bin arrays ``p`` and ``lbar`` with a full theta_o band (:mod:`usdfiber.bake.storage`),
+        the float64 sums of a group of directions in flight (:mod:`usdfiber.bake.statistics`)
+        and the tracer's photons (about 2^21 at 64 bytes); with the "reciprocity" estimator,
+        also every direction's histograms in float32, twice (:mod:`usdfiber.bake.reciprocity`)."""
+        g = Grid(self.resolution_deg, True, False)
+        K = len(self.levels)
+        per_direction = K * g.n_theta_o * g.n_phi_o
+        item = 2 if self.storage == "float16" else 4
+        group = max(1, min(64, (1 << 21) // self.photons_per_batch))
+        symmetrize = 4 * g.n_theta_i * g.n_phi_i * per_direction * 4 if "reciprocity" in self.estimator else 0
+        return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * per_direction * 16
+                + (1 << 21) * 64 + symmetrize)
+
+    def result_inputs(self) -> dict[str, Any]:
+        """Everything that changes a baked table (for cache keys and headers)."""
+        d = asdict(self)
+        d["levels"] = list(self.levels)
+        if self.estimator:
+            d["estimator"] = list(self.estimator)
+        else:
+            d.pop("estimator")  # the plain estimator: keys of tables baked before it existed
+        if self.target_error is None:
+            d.pop("max_photons")  # only used in target-error mode
+        d["builtin_profile_vertices"] = BUILTIN_PROFILE_VERTICES
+        d["baker_version"] = BAKER_VERSION
+        return d
+
+
+#: Bake settings for tables baked on demand by a renderer bridge or a material writer: a 6
+#: degree grid (renderers interpolate between bins) and 100k photons per incoming direction
+#: (2.5-7 % relative L2 error per direction, rms over the table, for the presets:
+#: bench/REPORT.md, "grouping"). `usdfiber bake` makes the paper's 2 degree tables.
+RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)

@@ -1,0 +1,204 @@
+"""Per-direction statistics of a bake: histograms at every absorption level and the error.
+
+Photons of one incoming direction are traced in ``batches`` independent batches (distinct
+random streams; batch ``b`` of every direction uses the same stream, so errors vary smoothly
+with omega_i). Their exit directions are histogrammed into the theta_o x phi_o bins,
+weighted by ``exp(-s_k L)`` at each absorption level (``L``: path length in the material).
+The variance between batches gives the direction's error estimate: the relative L2 error of
+``p`` over the sphere, ``sqrt(sum_b dOmega_b Var[p_b]) / sqrt(sum_b dOmega_b p_b^2)`` with
+``Var`` the variance of the batch mean (at ``sigma_a = 0``). In ``target_error`` mode
+batches are added until the estimate reaches the target (or ``max_photons``); the error of a
+Monte Carlo histogram falls as ``N^-1/2``, which sets how many more are needed.
+
+Normalization: an extruded fiber intercepts exactly the photons launched over its shadow
+``W(phi_i)``: a batch is divided by the photons that met the fiber. A fiber with cuticle
+scales has an uneven surface: ``W`` is the width of the shadow of the scales' outer envelope
+and a photon crossing that envelope's shadow without touching a scale goes straight on,
+which in the far field is scattering into ``omega_o = -omega_i`` (it is counted there).
+Rotationally symmetric tables are mirror-averaged, ``p(phi_o - phi_i) = p(phi_i - phi_o)``
+(:func:`mirror_phi`), which halves the variance.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from usdfiber.bake.grid import Grid
+from usdfiber.bake.settings import BakeSettings
+
+__all__ = ["BakeContext", "DirectionStatistics", "mirror_phi"]
+
+
+def mirror_phi(a: np.ndarray) -> np.ndarray:
+    """Average with the mirror phi_o - phi_i -> -(phi_o - phi_i) (phi_i at half a bin)."""
+    n = a.shape[-1]
+    idx = (-np.arange(n)) % n
+    return 0.5 * (a + a[..., idx])
+
+
+@dataclass
+class BakeContext:
+    """What every incoming direction of one table shares: the traced scene (``fs``, from
+    :func:`usdfiber.bake.tracer.prepare`), the grid, the settings, the traced optics, the
+    absorption levels in 1/um of the baked size and the envelope width ``W_env(phi)``."""
+
+    fs: Any
+    grid: Grid
+    settings: BakeSettings
+    eta: float
+    beta_deg: float
+    cuticle: tuple[float, float, float] | None
+    levels_um: np.ndarray
+    width_env: np.ndarray      # W_env at WIDTH_SAMPLES
+    env_height: float
+
+    @cached_property
+    def _width_nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        n = len(self.width_env)
+        return 2 * math.pi * np.arange(n + 1) / n, np.append(self.width_env, self.width_env[0])
+
+    def env_width(self, phi: float) -> float:
+        """W_env at azimuth ``phi`` (radians): linear between the samples, periodic."""
+        wphi, wval = self._width_nodes
+        return float(np.interp(phi % (2 * math.pi), wphi, wval))
+
+
+class DirectionStatistics:
+    """The histograms of one incoming direction, filled batch by batch, and its error."""
+
+    def __init__(self, ctx: BakeContext, ti: int, pi: int) -> None:
+        g, st = ctx.grid, ctx.settings
+        self.ctx = ctx
+        self.theta = float(g.theta_i_nodes()[ti])
+        self.phi = float(g.phi_i_nodes()[pi])
+        self.nb = g.n_theta_o * g.n_phi_o
+        K = len(ctx.levels_um)
+        self.H = np.zeros((K, self.nb))
+        self.G = np.zeros((K, self.nb))
+        self.batch_hist: list[np.ndarray] = []
+        self.batch_norm: list[float] = []
+        self.batch_weight: list[float] = []
+        self.rng = np.random.default_rng([int(st.seed) & 0xFFFFFFFF, ti, pi, 7])
+        self.strata = (self.rng.permutation(int(st.batches)), self.rng.permutation(int(st.batches)))
+        self.stats = {"n_hit": 0, "n_cut": 0, "launched": 0, "leaks": 0, "misses": 0.0}
+        self.seconds = 0.0
+        self.queue = list(range(int(st.batches)))   # batches still to trace
+        self.next_batch = int(st.batches)
+        self.err = math.inf
+
+    def sub_direction(self, b: int) -> tuple[float, float]:
+        """The batch's light direction: the node, or a stratified point of its bin ("box")."""
+        g, st = self.ctx.grid, self.ctx.settings
+        if st.incoming != "box":
+            return self.theta, self.phi
+        B = int(st.batches)
+        if b < B:
+            u, v = (self.strata[0][b] + self.rng.random()) / B, (self.strata[1][b] + self.rng.random()) / B
+        else:
+            u, v = self.rng.random(), self.rng.random()
+        lo, hi = math.sin(self.theta - 0.5 * g.step), math.sin(self.theta + 0.5 * g.step)
+        th = math.asin(min(1.0, max(-1.0, lo + u * (hi - lo))))   # uniform in solid angle
+        ph = self.phi if g.phi_invariant else self.phi + (v - 0.5) * g.step
+        return th, ph
+
+    def add(self, r: Any, th_b: float, ph_b: float) -> None:
+        """Bin one traced batch at every absorption level."""
+        ctx = self.ctx
+        g, nb, K = ctx.grid, self.nb, len(ctx.levels_um)
+        idx = g.bin_index(r.directions)
+        L = r.path_length.astype(np.float64)
+        alive = ~np.asarray(r.cut, dtype=bool)
+        h = np.zeros((K, nb))
+        gl = np.zeros((K, nb))
+        for k, s in enumerate(ctx.levels_um):
+            w = np.exp(-s * L) if s > 0 else np.ones_like(L)
+            w = np.where(alive, w, 0.0)
+            h[k] = np.bincount(idx, weights=w, minlength=nb)
+            gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+        if ctx.cuticle is None:
+            norm = float(r.n_hit)
+        else:
+            # Photons crossing the envelope's shadow without touching a scale go straight on.
+            w_env = ctx.env_width(ph_b)
+            norm = r.n_launched * w_env / float(r.launch_width)
+            miss = max(0.0, norm - r.n_hit)
+            fwd = int(g.bin_index(np.array([[-math.cos(th_b) * math.cos(ph_b), -math.cos(th_b) * math.sin(ph_b),
+                                              -math.sin(th_b)]]))[0])
+            h[:, fwd] += miss
+            self.stats["misses"] += miss
+        # Each batch weighs as the power its beam carries: photons that met the fiber for a
+        # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin.
+        box = ctx.settings.incoming == "box"
+        weight = norm if not box else ctx.env_width(ph_b) * math.cos(th_b)
+        scale = weight / norm if norm > 0 else 0.0
+        self.H += scale * h
+        self.G += scale * gl
+        self.batch_hist.append(h[0])
+        self.batch_norm.append(norm)
+        self.batch_weight.append(weight)
+        self.stats["n_hit"] += int(r.n_hit)
+        self.stats["n_cut"] += int(r.n_cut)
+        self.stats["launched"] += int(r.n_launched)
+        self.stats["leaks"] += int(r.extra.get("leaks", 0)) if isinstance(r.extra, dict) else 0
+        self.seconds += float(r.seconds)
+
+    def error(self) -> float:
+        """Relative L2 error of p from the spread between batches (see the module docstring)."""
+        g = self.ctx.grid
+        dom = np.repeat(g.solid_angles(), g.n_phi_o)
+        ps = np.stack([h / max(n, 1e-300) for h, n in zip(self.batch_hist, self.batch_norm)]) / dom
+        if g.phi_invariant:
+            ps = mirror_phi(ps.reshape(len(ps), g.n_theta_o, g.n_phi_o)).reshape(len(ps), self.nb)
+        w = np.asarray(self.batch_weight, dtype=np.float64)
+        w = w / w.sum()
+        mean = w @ ps
+        nB = len(ps)
+        # Variance of the weighted mean from the spread between batches.
+        var = (w @ (ps - mean) ** 2) * nB / (nB - 1) * float((w ** 2).sum())
+        den = float((dom * mean ** 2).sum())
+        return float(math.sqrt((dom * var).sum() / den)) if den > 0 else float("inf")
+
+    def plan_more(self, n_b: int) -> None:
+        """After the queued batches: queue as many more as the target error needs."""
+        st = self.ctx.settings
+        self.err = self.error()
+        b = self.next_batch
+        if st.target_error is None or not (self.err > st.target_error and b * n_b < int(st.max_photons)):
+            return
+        need = b * n_b * (self.err / float(st.target_error)) ** 2 * 1.05
+        extra = int(math.ceil(need / n_b)) - b
+        extra = max(1, min(extra, int(st.max_photons) // n_b - b))
+        self.queue = list(range(b, b + extra))
+        self.next_batch = b + extra
+
+    def result(self) -> dict[str, Any]:
+        """The direction's histograms (theta_o rows with light only) and statistics: the
+        mapping :func:`usdfiber.bake.assembly.assemble` reads and a chunk stores."""
+        g = self.ctx.grid
+        n_r, n_c = g.n_theta_o, g.n_phi_o
+        K = len(self.ctx.levels_um)
+        H = self.H.reshape(K, n_r, n_c)
+        G = self.G.reshape(K, n_r, n_c)
+        if g.phi_invariant:
+            H, G = mirror_phi(H), mirror_phi(G)
+        nz = np.flatnonzero(H[0].sum(axis=-1) > 0)
+        r0, r1 = (int(nz[0]), int(nz[-1]) + 1) if nz.size else (0, 1)
+        return {
+            "rows": (r0, r1),
+            "H": H[:, r0:r1].astype(np.float32),
+            "G": G[:, r0:r1].astype(np.float32),
+            "norm": float(sum(self.batch_weight)),
+            "photons": int(self.stats["launched"]),
+            "n_hit": self.stats["n_hit"],
+            "n_cut": self.stats["n_cut"],
+            "leaks": self.stats["leaks"],
+            "misses": self.stats["misses"],
+            "rel_error": self.err,
+            "seconds": self.seconds,
+            "theta_i": self.theta,
+            "phi_i": self.phi,
+        }
