@@ -19,10 +19,10 @@ test-all: setup
 # The Monte-Carlo test files with Dr.Jit's kernels compiled for 8 float lanes (AVX2) and for
 # 16 (AVX-512, where the CPU has it): random streams differ between the two, and every
 # statistical assertion must hold on both (docs/testing.md).
-MC_TESTS ?= tests/test_integrator.py tests/test_fiber_bsdf.py tests/test_tracer.py \
-	tests/test_reference_tracer.py tests/test_table.py tests/test_yarn_far_field.py \
-	tests/test_hair_comparison.py tests/test_lod_bound.py tests/test_translate_lights.py \
-	tests/test_recolour.py
+MC_TESTS ?= tests/mitsuba/test_integrator.py tests/mitsuba/test_fiber_bsdf.py tests/bake/test_tracer.py \
+	tests/bake/test_reference_tracer.py tests/bake/test_table.py tests/mitsuba/test_yarn_far_field.py \
+	tests/mitsuba/test_hair_comparison.py tests/mitsuba/test_lod_bound.py tests/mitsuba/test_translate_lights.py \
+	tests/bake/test_recolour.py
 test-widths: setup
 	USDFIBER_TEST_VECTOR_WIDTH=8 $(PYTHON) -m pytest -q $(MC_TESTS)
 	@if grep -qw avx512f /proc/cpuinfo; then \

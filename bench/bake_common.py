@@ -93,6 +93,23 @@ class Record:
               f"({self.doc['wall_seconds']} s; load average before {la[0]}, after {la[1]})")
 
 
+def bench_parser(doc: str, quick_help: str | None = None) -> argparse.ArgumentParser:
+    """A bake bench's command line: the script's docstring ``doc`` as description (its first
+    line) and epilog, with the options every bake bench has: ``--quick`` (smaller sizes) and
+    ``--out`` (the results file, else :func:`results_path`'s)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc)
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    ap.add_argument("--out", type=Path)
+    return ap
+
+
+def results_path(args: argparse.Namespace, name: str) -> Path:
+    """Where a run's results go: ``--out``, else ``bench/results/<name>.json``
+    (``<name>_quick.json`` with ``--quick``, so a smoke run never replaces a full one)."""
+    return args.out or RESULTS / (f"{name}_quick.json" if args.quick else f"{name}.json")
+
+
 def fmt_pct(x: float | None, digits: int = 2) -> str | None:
     return None if x is None or not math.isfinite(x) else f"{100 * x:.{digits}f}%"
 

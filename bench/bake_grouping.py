@@ -10,12 +10,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from bench_common import Timer, md_table
-from bake_common import RESULTS, Record, fiber_case
+from bake_common import RESULTS, Record, bench_parser, fiber_case
 
 
 def cmd_grouping(args: argparse.Namespace) -> int:
@@ -87,14 +86,11 @@ def cmd_grouping(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = bench_parser(__doc__)
     ap.add_argument("--fibers", default="polyester,silk,cotton,mercerizedCotton,wool",
                     help="presets (wool with its cuticle scales)")
     ap.add_argument("--sample", type=int, default=24, help="directions traced both ways per fiber")
     ap.add_argument("--resolution", type=float, default=None, help="override the render bake resolution (deg)")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path)
     return cmd_grouping(ap.parse_args(argv))
 
 

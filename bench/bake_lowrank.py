@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from bench_common import Timer, md_table
-from bake_common import RESULTS, Record, fiber_case
+from bake_common import RESULTS, Record, bench_parser, fiber_case
 
 
 def _banded(table, k: int, relative_phi: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -97,15 +96,12 @@ def cmd_lowrank(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = bench_parser(__doc__)
     ap.add_argument("--fiber", default="silk")
     ap.add_argument("--resolution", type=float, default=10.0)
     ap.add_argument("--photons", type=int, default=800_000, help="photons per direction (about 1 %% noise for silk at 10 deg)")
     ap.add_argument("--levels", type=lambda t: [int(x) for x in t.split(",")], default=[0, 8])
     ap.add_argument("--ranks", type=lambda t: [int(x) for x in t.split(",")], default=[4, 8, 16, 32])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path)
     return cmd_lowrank(ap.parse_args(argv))
 
 

@@ -10,14 +10,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench_common import Timer, md_table, meminfo_gib
 from bake_common import (
-    RESULTS, Record, fiber_case, fmt_pct, model_nbytes, rel_l2, synthetic_table, table_facts)
+    Record, bench_parser, fiber_case, fmt_pct, model_nbytes, rel_l2, results_path, synthetic_table, table_facts)
 
 
 def time_recolour(table, rgb_sets: list[tuple[float, float, float]]) -> dict[str, Any]:
@@ -43,7 +42,7 @@ def time_recolour(table, rgb_sets: list[tuple[float, float, float]]) -> dict[str
 
 
 def recolour_error(table, case: dict[str, Any], settings, sigmas, nodes, independent_photons: int) -> list[dict]:
-    """As tests/test_table.py: the recoloured table against the bake's own photons weighted by
+    """As tests/bake/test_table.py: the recoloured table against the bake's own photons weighted by
     exp(-sigma_a L) (same photons: interpolation + float16 only), and against an independent
     trace with that absorption (noise of both)."""
     from usdfiber.bake import binning, tracer
@@ -170,7 +169,7 @@ def cmd_recolour(args: argparse.Namespace) -> int:
         out["extrapolated_full_size"] = {"model": "seconds = a + b * (directions x levels x band x phi_o), "
                                                   "least squares over the synthetic tables",
                                          "warm_ab": fw[::-1].tolist(), "cold_ab": fc[::-1].tolist(), "rows": ext}
-    # 3. Error against direct traces (as in tests/test_table.py).
+    # 3. Error against direct traces (as in tests/bake/test_table.py).
     sigmas = [(0.3, 1.0), (1.5, 2.0), (3.0, 1.0), (5.0, 1.0), (20.0, 1.0), (100.0, 1.0)]
     for name, (tab, case, st) in real.items():
         nodes = [(0, 0), (1, 5), (2, 9)]
@@ -180,7 +179,7 @@ def cmd_recolour(args: argparse.Namespace) -> int:
         out["error"] += errs
     rec.doc["results"] = out
     print_recolour(out)
-    rec.finish(args.out or RESULTS / ("recolour_quick.json" if args.quick else "recolour.json"))
+    rec.finish(results_path(args, "recolour"))
     return 0
 
 
@@ -213,13 +212,10 @@ def print_recolour(out: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = bench_parser(__doc__)
     ap.add_argument("--photons", type=int, default=1 << 16, help="photons per direction of the real tables")
     ap.add_argument("--full-size", action="store_true",
                     help="also time a synthetic full 2 deg silk/cotton layout (needs ~15 GB of memory)")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path)
     return cmd_recolour(ap.parse_args(argv))
 
 

@@ -10,13 +10,12 @@ from __future__ import annotations
 import argparse
 import gc
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench_common import Timer, meminfo_gib
-from bake_common import RESULTS, Record, model_nbytes, synthetic_table, table_facts
+from bake_common import Record, bench_parser, model_nbytes, results_path, synthetic_table, table_facts
 
 
 def cmd_recolour_kernel(args: argparse.Namespace) -> int:
@@ -86,15 +85,12 @@ def cmd_recolour_kernel(args: argparse.Namespace) -> int:
               f"mono {row['kernel_mono_s']:.2f} s; numpy ({n_ref} channel(s)) {row['numpy_s']:.2f} s; "
               f"max rel diff {row['max_rel_diff_kernel_vs_numpy']:.2e}", flush=True)
     rec.doc["results"] = out
-    rec.finish(args.out or RESULTS / ("recolour_kernel_quick.json" if args.quick else "recolour_kernel.json"))
+    rec.finish(results_path(args, "recolour_kernel"))
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path)
+    ap = bench_parser(__doc__)
     return cmd_recolour_kernel(ap.parse_args(argv))
 
 

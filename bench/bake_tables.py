@@ -20,8 +20,8 @@ import numpy as np
 
 from bench_common import Timer, md_table
 from bake_common import (
-    DEG, MAX_BOUNCES, RESULTS, Record, bytes_per_direction, fiber_case, fmt_pct, fmt_time,
-    model_nbytes, parse_counts, table_facts)
+    DEG, MAX_BOUNCES, Record, bench_parser, bytes_per_direction, fiber_case, fmt_pct, fmt_time,
+    model_nbytes, parse_counts, results_path, table_facts)
 
 
 PAPER_PHOTONS = 16_000_000                  # "sixteen million photons" per light direction
@@ -209,7 +209,7 @@ def cmd_tables(args: argparse.Namespace) -> int:
     rec.doc["paper_table2"] = PAPER_TABLE2
     rec.doc["targets"] = TARGETS
     print_tables_summary(results)
-    rec.finish(args.out or RESULTS / ("tables_quick.json" if args.quick else "tables.json"))
+    rec.finish(results_path(args, "tables"))
     return 0
 
 
@@ -258,8 +258,7 @@ def print_tables_summary(results: list[dict[str, Any]]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = bench_parser(__doc__)
     ap.add_argument("--fibers", default="polyester,silk,cotton,mercerizedCotton,wool",
                     help="presets (wool with its cuticle scales, as the paper's wool table)")
     ap.add_argument("--resolution", type=float, default=15.0, help="resolution of the real bakes (deg)")
@@ -269,8 +268,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--probe-batches", type=int, default=8, help="batches per probe direction (BakeSettings default)")
     ap.add_argument("--round-photons", type=int, default=1 << 18,
                     help="photons per direction of the real 2 deg bake of round fibers")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path)
     return cmd_tables(ap.parse_args(argv))
 
 

@@ -12,15 +12,14 @@ import math
 import os
 import sys
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench_common import Timer, md_table
 from bake_common import (
-    CASES, DEG, MAX_BOUNCES, N_PH, N_TH, RESULTS, Record, STEP, fiber_case, fmt_pct, fmt_time,
-    parse_counts, rel_l2, solid_angles)
+    CASES, DEG, MAX_BOUNCES, N_PH, N_TH, Record, STEP, bench_parser, fiber_case, fmt_pct, fmt_time,
+    parse_counts, rel_l2, results_path, solid_angles)
 
 
 FAST_CHUNK = 1 << 21                        # photons per fast-tracer call (its own batch size)
@@ -293,7 +292,7 @@ def cmd_tracers(args: argparse.Namespace) -> int:
             print_tracer_entry(entry)
     rec.doc["results"] = results
     print_tracer_summary(results)
-    rec.finish(args.out or RESULTS / ("tracers_quick.json" if args.quick else "tracers.json"))
+    rec.finish(results_path(args, "tracers"))
     return 0
 
 
@@ -367,8 +366,7 @@ def print_tracer_summary(results: list[dict[str, Any]]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap = bench_parser(__doc__, quick_help="tiny counts (smoke test)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma list of {', '.join(CASES)}")
     ap.add_argument("--directions", default="35,25",
                     help="theta_i,phi_i in degrees; several separated by ';' (default 35,25: a node of "
@@ -378,8 +376,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fast-ref", type=int, default=24, help="log2 photons of the fast tracer's high-photon run")
     ap.add_argument("--ref-ref", type=int, default=21, help="log2 photons of the reference tracer's high-photon run")
     ap.add_argument("--fast-only", action="store_true")
-    ap.add_argument("--quick", action="store_true", help="tiny counts (smoke test)")
-    ap.add_argument("--out", type=Path)
     return cmd_tracers(ap.parse_args(argv))
 
 

@@ -139,7 +139,7 @@ def fiber_mat(n_fibers: int, n_cp: int = 8, radius: float = 0.01, seed: int = 1)
 
 def matched_hair(mi: Any, eta: float, beta_deg: float) -> Any:
     """``hair`` with no pigment, scale_tilt 0, and roughness matched to a Beckmann beta
-    (R lobe std sqrt(2) tan beta, as in tests/test_hair_comparison.py)."""
+    (R lobe std sqrt(2) tan beta, as in tests/mitsuba/test_hair_comparison.py)."""
     from scipy.optimize import brentq
 
     std = math.sqrt(2.0) * math.tan(math.radians(beta_deg))

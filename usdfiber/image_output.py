@@ -160,43 +160,37 @@ def read_exr(path: str | os.PathLike[str]) -> tuple[np.ndarray, dict[str, str]]:
     shortest round-trip form (``0.1`` stays ``"0.1"`` after float32 storage), arrays as
     space-separated numbers. Extra channels are not returned (read them with OIIO).
     """
-    path = Path(path)
+    channels, data, header = _read_float_image(Path(path), require="RGB")
+    return np.ascontiguousarray(data[..., [channels.index(c) for c in "RGB"]]), header
+
+
+def read_exr_channels(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Every channel of an EXR by name (``"R"``, ``"A"``, ``"albedo.R"``, ``"depth.Z"``...),
+    each ``(H, W)`` float32, in the file's order."""
+    channels, data, _ = _read_float_image(Path(path))
+    return {name: np.ascontiguousarray(data[..., i]) for i, name in enumerate(channels)}
+
+
+def _read_float_image(path: Path, require: str = "") -> tuple[list[str], np.ndarray, dict[str, str]]:
+    """Channel names, every channel as ``(H, W, C)`` float32, and the header attributes as
+    strings; refuses a file that lacks a channel named in ``require`` before reading pixels."""
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageOutputError(f"cannot read {path}: {oiio.geterror() or 'unreadable'}")
     try:
         spec = inp.spec()
         channels = list(spec.channelnames)
-        missing = [c for c in "RGB" if c not in channels]
+        missing = [c for c in require if c not in channels]
         if missing:
             raise ImageOutputError(f"cannot read {path}: no channel(s) {missing}; has {channels}")
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if data is None:
             raise ImageOutputError(f"cannot read {path}: {inp.geterror() or 'read failed'}")
         data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        rgb = np.ascontiguousarray(data[..., [channels.index(c) for c in "RGB"]])
         header = {a.name: _format_attribute(a.value) for a in spec.extra_attribs}
     finally:
         inp.close()
-    return rgb, header
-
-
-def read_exr_channels(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
-    """Every channel of an EXR by name (``"R"``, ``"A"``, ``"albedo.R"``, ``"depth.Z"``...),
-    each ``(H, W)`` float32, in the file's order."""
-    path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ImageOutputError(f"cannot read {path}: {oiio.geterror() or 'unreadable'}")
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if data is None:
-            raise ImageOutputError(f"cannot read {path}: {inp.geterror() or 'read failed'}")
-        data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        return {name: np.ascontiguousarray(data[..., i]) for i, name in enumerate(spec.channelnames)}
-    finally:
-        inp.close()
+    return channels, data, header
 
 
 # --------------------------------------------------------------------------------------------

@@ -20,5 +20,6 @@ Modules, from the command down:
   :mod:`~usdfiber.translators.mitsuba.yarn_far_field` (far fields of small yarns),
   :mod:`~usdfiber.translators.mitsuba.fiber_bank` (tables packed for the device),
   :mod:`~usdfiber.translators.mitsuba.fiber_bsdf` (the BCSDF plugin) and
-  :mod:`~usdfiber.translators.mitsuba.integrator` (``usdfiber_path``).
+  :mod:`~usdfiber.translators.mitsuba.integrator` (``usdfiber_path``), both Python plugins
+  defined and registered per Mitsuba variant by :mod:`~usdfiber.translators.mitsuba.plugins`.
 """

@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     if args.frames is not None:
         from usdfiber.translators.mitsuba.sequence import run_sequence_command
 
-        return run_sequence_command(args, job)
+        return run_sequence_command(args, job, render_summary)
     if args.scheduler or args.shard:
         raise UsageError("--scheduler and --shard go with --frames")
     bake_progress = None if args.no_progress else _bake_progress()

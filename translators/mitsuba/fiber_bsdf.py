@@ -65,6 +65,7 @@ import numpy as np
 from usdfiber.backend import configure_llvm
 
 from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.plugins import VariantPlugin, forwarding_bsdf
 
 configure_llvm()   # Dr.Jit reads the path of its LLVM once, when it is first imported
 import drjit as dr  # noqa: E402
@@ -73,8 +74,6 @@ import mitsuba as mi  # noqa: E402  (types resolve to the variant active when a 
 __all__ = ["PLUGIN_NAME", "FamilyDevice", "FiberBcsdf", "bsdf_class", "fiber_bsdf", "register"]
 
 PLUGIN_NAME = "usdfiber_bcsdf"
-_CLASSES: dict[str, type] = {}
-_REGISTERED: set[str] = set()
 
 
 def lerp_nodes(v: Any, v0: float, step: float, n: int) -> tuple[Any, Any]:
@@ -538,14 +537,8 @@ class FiberBcsdf:
         return f"FiberBcsdf[families={[f is not None for f in self.families]}, pass_through={self.pass_through}]"
 
 
-def bsdf_class(mi: Any) -> type:
-    """The Mitsuba BSDF class for Mitsuba's active variant (defined once per variant): an
-    ``mi.BSDF`` whose public attribute ``fiber`` is the :class:`FiberBcsdf` it forwards to."""
-    variant = mi.variant()
-    if variant in _CLASSES:
-        return _CLASSES[variant]
-
-    class FiberBcsdfPlugin(mi.BSDF):
+def _define_plugin(mi: Any) -> type:
+    class FiberBcsdfPlugin(forwarding_bsdf(mi)):
         """``usdfiber_bcsdf``: Mitsuba's view of a :class:`FiberBcsdf`."""
 
         def __init__(self, props: Any) -> None:
@@ -559,17 +552,9 @@ def bsdf_class(mi: Any) -> type:
             self.fiber.set_fibers(bank, seg_slot, seg_psi, seg_ref, pass_through=pass_through)
             self.m_components, self.m_flags = self.fiber.flags()
 
-        def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-            return self.fiber.eval(ctx, si, wo, active)
-
-        def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-            return self.fiber.pdf(ctx, si, wo, active)
-
-        def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
-            return self.fiber.eval_pdf(ctx, si, wo, active)
-
-        def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
-            return self.fiber.sample(ctx, si, sample1, sample2, active)
+        @property
+        def model(self) -> FiberBcsdf:
+            return self.fiber
 
         def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
             return self.fiber.eval_null_transmission(si, active)
@@ -577,18 +562,21 @@ def bsdf_class(mi: Any) -> type:
         def to_string(self) -> str:
             return repr(self.fiber)
 
-    _CLASSES[variant] = FiberBcsdfPlugin
     return FiberBcsdfPlugin
+
+
+_PLUGIN = VariantPlugin(PLUGIN_NAME, "bsdf", _define_plugin)
+
+
+def bsdf_class(mi: Any) -> type:
+    """The Mitsuba BSDF class for Mitsuba's active variant (defined once per variant): an
+    ``mi.BSDF`` whose public attribute ``fiber`` is the :class:`FiberBcsdf` it forwards to."""
+    return _PLUGIN.plugin_class(mi)
 
 
 def register(mi: Any) -> type:
     """Register ``usdfiber_bcsdf`` with Mitsuba's active variant (once); returns the class."""
-    cls = bsdf_class(mi)
-    variant = mi.variant()
-    if variant not in _REGISTERED:
-        mi.register_bsdf(PLUGIN_NAME, lambda props: cls(props))
-        _REGISTERED.add(variant)
-    return cls
+    return _PLUGIN.register(mi)
 
 
 def fiber_bsdf(mi: Any, bank: FiberBank, seg_slot: Sequence[int] | np.ndarray, seg_psi: Sequence[float] | np.ndarray,

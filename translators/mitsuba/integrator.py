@@ -56,12 +56,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from usdfiber.translators.mitsuba.plugins import VariantPlugin
+
 __all__ = ["MAX_PASSES", "PLUGIN_NAME", "integrator_class", "register", "scene_has_null_bsdf"]
 
 PLUGIN_NAME = "usdfiber_path"
 MAX_PASSES = 1024
-_CLASSES: dict[str, type] = {}
-_REGISTERED: set[str] = set()
 
 
 class _Null:
@@ -125,11 +125,7 @@ def _fiber_q(null: _Null, si: Any, active: Any) -> tuple[Any, Any]:
     return on, dr.select(on, fib.scatter_probability_at(si, on), 1.0)
 
 
-def integrator_class(mi: Any) -> type:
-    """The integrator class for Mitsuba's active variant (defined once per variant)."""
-    variant = mi.variant()
-    if variant in _CLASSES:
-        return _CLASSES[variant]
+def _define_plugin(mi: Any) -> type:
     import drjit as dr
 
     from usdfiber.translators.mitsuba.fiber_bsdf import bsdf_class
@@ -331,15 +327,17 @@ def integrator_class(mi: Any) -> type:
             return (f"FiberPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                     f"fiber_pass={self.fiber_pass}, null_shadows={self.null_shadows}]")
 
-    _CLASSES[variant] = FiberPathIntegrator
     return FiberPathIntegrator
+
+
+_PLUGIN = VariantPlugin(PLUGIN_NAME, "integrator", _define_plugin)
+
+
+def integrator_class(mi: Any) -> type:
+    """The integrator class for Mitsuba's active variant (defined once per variant)."""
+    return _PLUGIN.plugin_class(mi)
 
 
 def register(mi: Any) -> type:
     """Register ``usdfiber_path`` with Mitsuba's active variant (once); returns the class."""
-    cls = integrator_class(mi)
-    variant = mi.variant()
-    if variant not in _REGISTERED:
-        mi.register_integrator(PLUGIN_NAME, lambda props: cls(props))
-        _REGISTERED.add(variant)
-    return cls
+    return _PLUGIN.register(mi)

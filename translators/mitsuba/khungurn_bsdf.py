@@ -31,6 +31,7 @@ import numpy as np
 
 from usdfiber.backend import configure_llvm
 from usdfiber.fit.khungurn import KhungurnParams, longitudinal
+from usdfiber.translators.mitsuba.plugins import VariantPlugin, forwarding_bsdf
 
 configure_llvm()
 import drjit as dr  # noqa: E402
@@ -40,8 +41,6 @@ __all__ = ["PLUGIN_NAME", "KhungurnBsdf", "khungurn_bsdf", "register"]
 
 PLUGIN_NAME = "usdfiber_khungurn"
 NORM_NODES = 257
-_CLASSES: dict[str, type] = {}
-_REGISTERED: set[str] = set()
 
 
 def _norm_table(beta_deg: float) -> np.ndarray:
@@ -195,17 +194,8 @@ def _params_from_properties(props: Any) -> KhungurnParams:
                           gamma_tt_deg=float(props.get("gamma_tt_deg", 30.0)))
 
 
-def bsdf_class(mi: Any) -> type:
-    """The Mitsuba BSDF class for the active variant; its ``model`` is a :class:`KhungurnBsdf`.
-
-    Stand-alone properties (one fiber for every curve): ``c_r``, ``c_tt`` (RGB or float),
-    ``beta_r_deg``, ``beta_tt_deg``, ``gamma_tt_deg``.
-    """
-    variant = mi.variant()
-    if variant in _CLASSES:
-        return _CLASSES[variant]
-
-    class KhungurnPlugin(mi.BSDF):
+def _define_plugin(mi: Any) -> type:
+    class KhungurnPlugin(forwarding_bsdf(mi)):
         """``usdfiber_khungurn``: Mitsuba's view of a :class:`KhungurnBsdf`."""
 
         def __init__(self, props: Any) -> None:
@@ -219,32 +209,27 @@ def bsdf_class(mi: Any) -> type:
             """Per-slot parameters and the slot of each curve segment."""
             self.model = KhungurnBsdf(params, seg_slot)
 
-        def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-            return self.model.eval(ctx, si, wo, active)
-
-        def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-            return self.model.pdf(ctx, si, wo, active)
-
-        def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
-            return self.model.eval_pdf(ctx, si, wo, active)
-
-        def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
-            return self.model.sample(ctx, si, sample1, sample2, active)
-
         def to_string(self) -> str:
             return "KhungurnFiber[]"
 
-    _CLASSES[variant] = KhungurnPlugin
     return KhungurnPlugin
+
+
+_PLUGIN = VariantPlugin(PLUGIN_NAME, "bsdf", _define_plugin)
+
+
+def bsdf_class(mi: Any) -> type:
+    """The Mitsuba BSDF class for the active variant; its ``model`` is a :class:`KhungurnBsdf`.
+
+    Stand-alone properties (one fiber for every curve): ``c_r``, ``c_tt`` (RGB or float),
+    ``beta_r_deg``, ``beta_tt_deg``, ``gamma_tt_deg``.
+    """
+    return _PLUGIN.plugin_class(mi)
 
 
 def register(mi: Any) -> type:
     """Register ``usdfiber_khungurn`` with Mitsuba's active variant (once); returns the class."""
-    cls = bsdf_class(mi)
-    if mi.variant() not in _REGISTERED:
-        mi.register_bsdf(PLUGIN_NAME, lambda props: cls(props))
-        _REGISTERED.add(mi.variant())
-    return cls
+    return _PLUGIN.register(mi)
 
 
 def khungurn_bsdf(mi: Any, params: Sequence[KhungurnParams], seg_slot: np.ndarray) -> Any:

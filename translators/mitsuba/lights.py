@@ -37,7 +37,7 @@ Mitsuba's ``rectangle``/``disk`` emit along local +Z, so they get a 180 degree t
 DomeLight / DomeLight_1: the latlong texture's layout is the OpenEXR one (UsdLux DomeLight
 docs): +Y is the top pole, longitude 0 (the image centre) looks along +Z, longitude +pi/2
 (a quarter of the width from the left edge) along +X. Mitsuba's ``envmap`` was measured to use
-the same layout (tests/test_translate_lights.py renders a one-texel map), so the image is
+the same layout (tests/mitsuba/test_translate_lights.py renders a one-texel map), so the image is
 passed unchanged with ``to_world`` = the light's rotation. Mitsuba samples texel values at
 grid vertices (column i at u = i/W, row j at v = j/(H-1)), like the OpenEXR definition
 vertically; horizontally it differs by under one texel. DomeLight_1's ``poleAxis`` (``Z``, or

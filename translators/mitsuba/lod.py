@@ -24,7 +24,7 @@ measured constants below, and benchmarks try other policies through it.
   the yarn keeps its coverage; what it loses is some of the light scattered between its
   fibers, so the image is slightly too bright: +3.8 % in the mean at 6.3 px and +1.1 % at
   3.5 px, where 4 fibers per pixel (8-21 % of them) widened by ``1 / sqrt(fraction)`` were +30 %
-  and +40 %. The bound is checked in every test run (tests/test_lod_bound.py: a patch of
+  and +40 %. The bound is checked in every test run (tests/mitsuba/test_lod_bound.py: a patch of
   5-pixel yarns within 5 % in the mean and 10 % on 4 x 4 pixel blocks).
 
 ``lod_scale = 0`` turns the reduction off (every fiber is expanded; culling stays).

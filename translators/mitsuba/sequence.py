@@ -16,7 +16,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, Callable, Sequence, TextIO
 
 from usdfiber.farm.frames import frame_path, has_frame_token
 from usdfiber.farm.progress import FarmFailure, FarmProgress, FarmSummary
@@ -55,8 +55,12 @@ def _done(path: Path) -> bool:
         return False
 
 
-def render_frame(job: RenderJob) -> dict[str, Any]:
-    """Render one frame (on a Dask worker or here); what was written and how long it took."""
+def render_frame(job: RenderJob, summarize: Callable[[str, Any], dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Render one frame (on a Dask worker or here); what was written and how long it took.
+
+    ``summarize(stage, result)``: the single-frame summary (``render --json``'s), kept under
+    ``"render"``; a module-level function, so that Dask can send it to the workers.
+    """
     from usdfiber.farm.cluster import TASK_LOCK
 
     try:
@@ -70,14 +74,18 @@ def render_frame(job: RenderJob) -> dict[str, Any]:
     t0 = time.perf_counter()
     with TASK_LOCK, open(os.devnull, "w") as quiet:
         res = render_stage(job, log=quiet)
-    return {"frame": job.frame, "path": str(job.output), "status": "rendered", "seconds": time.perf_counter() - t0,
-            "render_seconds": res.times.get("render", 0.0), "host": os.uname().nodename,
-            "warnings": res.warnings[:8]}
+    out = {"frame": job.frame, "path": str(job.output), "status": "rendered", "seconds": time.perf_counter() - t0,
+           "render_seconds": res.times.get("render", 0.0), "host": os.uname().nodename, "warnings": res.warnings[:8]}
+    if summarize is not None:
+        out["render"] = summarize(str(job.stage), res)
+    return out
 
 
 def render_sequence(job: RenderJob, frames: Sequence[int], *, scheduler: str | None = None, shard: Any = None,
-                    show_progress: bool = True, log: TextIO | None = None) -> FarmSummary:
-    """Render ``frames`` of ``job`` (see the module docstring); the summary lists every frame."""
+                    show_progress: bool = True, log: TextIO | None = None,
+                    summarize: Callable[[str, Any], dict[str, Any]] | None = None) -> FarmSummary:
+    """Render ``frames`` of ``job`` (see the module docstring); the summary lists every frame
+    (with ``summarize``'s single-frame summary of each rendered one, see :func:`render_frame`)."""
     log = log or sys.stderr
     t0 = time.perf_counter()
     jobs = frame_jobs(job, frames)
@@ -102,11 +110,11 @@ def render_sequence(job: RenderJob, frames: Sequence[int], *, scheduler: str | N
         bar.log(f"usdfiber: error: {f.line()}")
 
     if scheduler and todo:
-        _on_dask(scheduler, todo, summary, bar, failed)
+        _on_dask(scheduler, todo, summary, bar, failed, summarize)
     else:
         for j in todo:
             try:
-                summary.frames.append(render_frame(j))
+                summary.frames.append(render_frame(j, summarize))
                 summary.tasks["run"] += 1
             except RenderRefused as exc:
                 failed(j, os.uname().nodename, exc)
@@ -119,7 +127,8 @@ def render_sequence(job: RenderJob, frames: Sequence[int], *, scheduler: str | N
     return summary
 
 
-def _on_dask(scheduler: str, todo: list[RenderJob], summary: FarmSummary, bar: FarmProgress, failed: Any) -> None:
+def _on_dask(scheduler: str, todo: list[RenderJob], summary: FarmSummary, bar: FarmProgress, failed: Any,
+             summarize: Callable[[str, Any], dict[str, Any]] | None) -> None:
     """Bake the frames' tables on the cluster, then one task per frame."""
     from distributed import as_completed
 
@@ -144,8 +153,7 @@ def _on_dask(scheduler: str, todo: list[RenderJob], summary: FarmSummary, bar: F
         summary.tables = baked.tables
         if not baked.ok:
             raise FarmError(f"the tables could not be baked: {baked.failures[0].line()}")
-        futs = {farm.client.submit(render_frame, j, key=f"usdfiber-frame-{abs(hash((j.stage, str(j.output))))}",
-                                   retries=1, pure=False): j for j in todo}
+        futs = {farm.client.submit(render_frame, j, summarize, key=_frame_key(j), retries=1, pure=False): j for j in todo}
         summary.workers = len(farm.client.scheduler_info().get("workers", {}))
         for fut in as_completed(list(futs)):
             j = futs[fut]
@@ -159,8 +167,19 @@ def _on_dask(scheduler: str, todo: list[RenderJob], summary: FarmSummary, bar: F
             bar.advance(1)
 
 
-def run_sequence_command(args: Any, job: RenderJob) -> int:
-    """``usdfiber render --frames`` (with ``--scheduler``, ``--shard``, ``--json``); the exit status."""
+def _frame_key(job: RenderJob) -> str:
+    """The Dask key of a frame: equal in every client for the same stage, frame and output."""
+    import hashlib
+
+    digest = hashlib.sha256(f"{Path(job.stage).absolute()}\0{job.frame!r}\0{Path(job.output).absolute()}"
+                            .encode()).hexdigest()[:24]
+    return f"usdfiber-frame-{job.frame:g}-{digest}"
+
+
+def run_sequence_command(args: Any, job: RenderJob,
+                         summarize: Callable[[str, Any], dict[str, Any]] | None = None) -> int:
+    """``usdfiber render --frames`` (with ``--scheduler``, ``--shard``, ``--json``); the exit status.
+    ``summarize``: the single-frame ``--json`` summary, given to each frame's entry."""
     from usdfiber.cli import UsageError
     from usdfiber.farm.cluster import FarmError
     from usdfiber.farm.frames import FrameSpecError, parse_frames
@@ -178,7 +197,7 @@ def run_sequence_command(args: Any, job: RenderJob) -> int:
         raise UsageError(f"{exc}") from None
     try:
         summary = render_sequence(job, frames, scheduler=args.scheduler, shard=shard,
-                                  show_progress=not args.no_progress)
+                                  show_progress=not args.no_progress, summarize=summarize)
     except FarmError as exc:
         raise UsageError(str(exc)) from None
     if args.json:

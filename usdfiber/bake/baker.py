@@ -63,7 +63,7 @@ import numpy as np
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.chunks import ResumeDirectory, chunk_name
 from usdfiber.bake.grid import Grid
-from usdfiber.bake.reciprocity import reciprocal_average
+from usdfiber.bake.reciprocity import check_memory, reciprocal_average
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
 from usdfiber.bake.settings import BakeError, BakeSettings
@@ -215,6 +215,8 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
     grid = Grid(st.resolution_deg, theta_symmetric=cut is None,
                 phi_invariant=is_rotationally_symmetric(profile))
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
+    if "reciprocity" in st.estimator:
+        check_memory(grid, len(levels_um))      # before hours of tracing, not after
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # mesh remarks on cuticle shapes
         fs = tracer.prepare(profile, cut)

@@ -35,10 +35,21 @@ import numpy as np
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError
 
-__all__ = ["MAX_BYTES", "partner_bins", "reciprocal_average"]
+__all__ = ["MAX_BYTES", "check_memory", "partner_bins", "reciprocal_average"]
 
 #: Largest memory the averaging may take (all directions' H and G in float32, twice).
 MAX_BYTES = 4 << 30
+
+
+def check_memory(grid: Grid, n_levels: int) -> None:
+    """Raise BakeError (before anything is traced) when averaging a table of ``grid`` with
+    ``n_levels`` absorption levels would take more than :data:`MAX_BYTES`."""
+    need = 4 * grid.n_theta_i * grid.n_phi_i * grid.n_theta_o * grid.n_phi_o * int(n_levels) * 4
+    if need > MAX_BYTES:
+        raise BakeError(f"reciprocity averaging of a {grid.resolution_deg:g} deg table with "
+                        f"{grid.n_theta_i * grid.n_phi_i} directions needs {need / 2 ** 30:.1f} GiB of memory "
+                        f"(limit {MAX_BYTES / 2 ** 30:.0f} GiB): bake it without the 'reciprocity' estimator "
+                        "or at a coarser resolution")
 
 
 def partner_bins(grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -89,11 +100,7 @@ def reciprocal_average(grid: Grid, slices: Mapping[tuple[int, int], Mapping[str,
                         f"(first: theta_i node {missing[0][0]}, phi_i node {missing[0][1]})")
     first = next(iter(slices.values()))
     K = int(np.asarray(first["H"]).shape[0])
-    need = 4 * n_ti * n_pi * n_r * n_c * K * 4
-    if need > MAX_BYTES:
-        raise BakeError(f"reciprocity averaging of a {grid.resolution_deg:g} deg table with {n_ti * n_pi} "
-                        f"directions needs {need / 2 ** 30:.1f} GiB of memory (limit {MAX_BYTES / 2 ** 30:.0f} "
-                        "GiB): bake it without the 'reciprocity' estimator or at a coarser resolution")
+    check_memory(grid, K)
     H = np.zeros((n_ti, n_pi, n_r, n_c, K), dtype=np.float32)
     G = np.zeros_like(H)
     B = np.zeros((n_ti, n_pi))

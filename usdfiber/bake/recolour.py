@@ -13,7 +13,7 @@ copy), with one ``log`` and one ``exp`` per bin and channel. A second kernel nor
 copy.
 
 The arithmetic is that of :func:`~usdfiber.bake.absorption.hermite_log_interp` in float32
-(checked against it in ``tests/test_recolour.py``); the float64 numpy path stays as the
+(checked against it in ``tests/bake/test_recolour.py``); the float64 numpy path stays as the
 reference and the fallback where Dr.Jit has no LLVM backend.
 """
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """Scrambled quasi-random numbers for the first dimensions of a photon, and independent streams.
 
-A photon's fate is decided mostly by its first few random numbers: the beam offset h and the
-first boundary event (the microfacet normal and the Fresnel choice; for a smooth boundary the
-Fresnel choice alone). :func:`sobol_points` gives those dimensions from the first four
+A photon's first random numbers are the beam offset h and the first boundary event (the
+microfacet normal and the Fresnel choice; for a smooth boundary the Fresnel choice alone).
+For a smooth profile they decide most of its fate; once a rough boundary's microsurface walk
+randomises the path they decide little (the measured gain: bench/REPORT.md, section 7).
+:func:`sobol_points` gives those dimensions from the first four
 dimensions of the Sobol sequence (Joe & Kuo direction numbers), Owen-scrambled with a hash
 (Burley 2020, "Practical Hash-based Owen Scrambling"): every point is uniform on the unit
 hypercube, so an estimator fed by them is unbiased, while the N points of one batch are

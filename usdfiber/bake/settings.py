@@ -101,7 +101,8 @@ class BakeSettings:
             raise BakeError(f"storage must be float16 or float32, got {self.storage!r}")
         if self.incoming not in ("centre", "box"):
             raise BakeError(f"incoming must be 'centre' or 'box', got {self.incoming!r}")
-        est = (self.estimator,) if isinstance(self.estimator, str) else tuple(self.estimator)
+        raw = self.estimator if self.estimator is not None else ()
+        est = (raw,) if isinstance(raw, str) else tuple(raw)
         est = tuple(sorted({str(e) for e in est if str(e) not in ("", "plain")}))
         unknown = [e for e in est if e not in ESTIMATORS]
         if unknown:

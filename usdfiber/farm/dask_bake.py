@@ -29,7 +29,7 @@ from usdfiber.bake.settings import BakeSettings
 from usdfiber.farm.cluster import FarmError, check_workers, write_probe
 from usdfiber.farm.progress import EVENT_TOPIC, FarmFailure, FarmProgress, FarmSummary, count_retries
 from usdfiber.farm.tasks import (TASK_PHOTONS, assemble_table, pending_directions, plan_tasks, release_chunks,
-                                 run_trace_task, table_jobs)
+                                 run_trace_task, served_by, table_jobs)
 
 __all__ = ["bake_on_dask"]
 
@@ -73,12 +73,13 @@ def bake_on_dask(client: Any, requests: Iterable[TableRequest], settings: BakeSe
         workers = check_workers(client, root, probe)
         summary.workers = len(workers)
         jobs = table_jobs(requests, st, cache)
-        missing = [j for j in jobs if not cache.contains(j.key)]
+        serving = {j.key: served_by(cache, j) for j in jobs}
+        missing = [j for j in jobs if serving[j.key] is None]
         for j in jobs:
-            if cache.contains(j.key):
+            if serving[j.key] is not None:
                 release_chunks(cache, j.key)   # chunks of a task that outlived the table's assembly
-                summary.tables.append({"key": j.key, "label": j.label, "status": "cached",
-                                       "path": str(cache.table_path(j.key)), "prims": j.request.prims[:16]})
+                summary.tables.append({"key": serving[j.key], "label": j.label, "status": "cached",
+                                       "path": str(cache.table_path(serving[j.key])), "prims": j.request.prims[:16]})
         tasks = plan_tasks(missing, task_photons)
         summary.tasks["total"] = len(tasks)
         todo = [t for t in tasks if pending_directions(cache, t) > 0]
@@ -128,7 +129,8 @@ def bake_on_dask(client: Any, requests: Iterable[TableRequest], settings: BakeSe
             raise FarmError(f"lost the Dask scheduler {summary.scheduler} mid-bake; finished directions are kept "
                             f"in {cache.root / 'partial'}: run the bake again to resume")
         events = client.get_events(EVENT_TOPIC)
-        retried = count_retries(events, list(trace_futs) + [f"usdfiber-assemble-{k[:24]}" for k in asm_futs])
+        retried = count_retries(events, list(trace_futs) + [f"usdfiber-assemble-{k[:24]}" for k in asm_futs],
+                                run=probe.path)
         summary.tasks["retries"] = sum(retried.values())
         summary.tasks["failed"] = len(summary.failures)
         for name, n in sorted(retried.items()):

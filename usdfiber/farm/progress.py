@@ -61,12 +61,15 @@ class FarmSummary:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True, default=str)
 
 
-def count_retries(events: Iterable[tuple[float, Any]], keys: Iterable[str]) -> dict[str, int]:
-    """Retries per task key: starts logged under :data:`EVENT_TOPIC` minus one (0 if it never started)."""
+def count_retries(events: Iterable[tuple[float, Any]], keys: Iterable[str], run: str | None = None) -> dict[str, int]:
+    """Retries per task key: starts logged under :data:`EVENT_TOPIC` minus one (0 if it never
+    started). ``run``: count only the starts of that run (a scheduler keeps the events of
+    earlier bakes of the same tasks)."""
     wanted = set(keys)
     starts: Counter[str] = Counter()
     for _, msg in events:
-        if isinstance(msg, dict) and msg.get("event") == "start" and msg.get("task") in wanted:
+        if (isinstance(msg, dict) and msg.get("event") == "start" and msg.get("task") in wanted
+                and (run is None or msg.get("run") == run)):
             starts[msg["task"]] += 1
     return {k: max(0, starts[k] - 1) for k in wanted}
 

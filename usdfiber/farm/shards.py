@@ -19,7 +19,7 @@ from usdfiber.bake.settings import BakeError, BakeSettings
 from usdfiber.farm.progress import FarmFailure, FarmProgress, FarmSummary
 from usdfiber.farm.shard_spec import Shard
 from usdfiber.farm.tasks import (TASK_PHOTONS, assemble_table, pending_directions, plan_tasks, run_trace_task,
-                                 table_jobs)
+                                 served_by, table_jobs)
 
 __all__ = ["bake_shard"]
 
@@ -41,7 +41,8 @@ def bake_shard(requests: Iterable[TableRequest], settings: BakeSettings | None, 
     mine = shard.select(tasks)
     summary.tasks["total"] = len(mine)
     by_key = {j.key: j for j in jobs}
-    todo = [t for t in mine if not cache.contains(t.key) and pending_directions(cache, t) > 0]
+    serving = {j.key: served_by(cache, j) for j in jobs}
+    todo = [t for t in mine if serving[t.key] is None and pending_directions(cache, t) > 0]
     summary.tasks["skipped"] = len(mine) - len(todo)
     total = sum(len(t.directions) for t in mine)
     pending = {t.name: pending_directions(cache, t) for t in todo}
@@ -63,6 +64,11 @@ def bake_shard(requests: Iterable[TableRequest], settings: BakeSettings | None, 
         summary.times["trace"] = bar.close()
     t1 = time.perf_counter()
     for job in jobs:
+        other = serving[job.key]
+        if other is not None and other != job.key:   # another table of the same physics, at least as good
+            summary.tables.append({"key": other, "label": job.label, "status": "cached",
+                                   "path": str(cache.table_path(other)), "prims": job.request.prims[:16]})
+            continue
         remaining = sum(pending_directions(cache, t) for t in tasks if t.key == job.key)
         if cache.contains(job.key) or remaining == 0:
             try:

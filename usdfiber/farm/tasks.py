@@ -37,7 +37,7 @@ from usdfiber.bake.settings import BakeError, BakeSettings
 from usdfiber.farm.cluster import Probe, TASK_LOCK, verify_probe
 
 __all__ = ["TASK_PHOTONS", "TableJob", "TraceTask", "assemble_table", "directions_per_task", "plan_tasks",
-           "pending_directions", "release_chunks", "run_trace_task", "table_done", "table_jobs"]
+           "pending_directions", "release_chunks", "run_trace_task", "served_by", "table_done", "table_jobs"]
 
 #: Photons per task (about 2^26): tens of seconds on one worker at the tracer's 2-7 M photons/s.
 TASK_PHOTONS = 1 << 26
@@ -107,14 +107,16 @@ def pending_directions(cache: TableCache, task: TraceTask) -> int:
     return sum(not (d / chunk_name(ti, pi)).exists() for ti, pi in task.directions)
 
 
-def _log_start(task_name: str) -> None:
-    """Tell the Dask scheduler this task started (counted as a retry when it starts again)."""
+def _log_start(task_name: str, probe: Probe | None) -> None:
+    """Tell the Dask scheduler this task started (counted as a retry when it starts again in
+    the same run: the run is named by its probe file, unique per bake)."""
     try:
         from distributed import get_worker
 
         from usdfiber.farm.progress import EVENT_TOPIC
 
-        get_worker().log_event(EVENT_TOPIC, {"event": "start", "task": task_name, "pid": os.getpid()})
+        get_worker().log_event(EVENT_TOPIC, {"event": "start", "task": task_name, "pid": os.getpid(),
+                                           "run": probe.path if probe is not None else None})
     except (ImportError, ValueError):
         pass  # not in a Dask worker (a shard)
 
@@ -128,6 +130,14 @@ def table_done(cache: TableCache, key: str) -> bool:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", TableCacheWarning)
         return cache.load(key) is not None
+
+
+def served_by(cache: TableCache, job: TableJob) -> str | None:
+    """The key of the cached table that serves ``job``: its own, or another of the same physics
+    at least as good (:meth:`TableCache.find_serving`); None when the table must be baked."""
+    if cache.contains(job.key):
+        return job.key
+    return cache.find_serving(job.request, job.settings)
 
 
 def release_chunks(cache: TableCache, key: str) -> bool:
@@ -158,7 +168,7 @@ def run_trace_task(job: TableJob, task: TraceTask, cache_root: str, probe: Probe
     ``skipped`` directions, ``photons``, ``seconds``, ``host`` and ``pid``. A task whose
     table is assembled meanwhile (by an overlapping run) stops there and leaves no chunks.
     """
-    _log_start(task.name)
+    _log_start(task.name, probe)
     verify_probe(probe, cache_root)
     cache = TableCache(cache_root)
     t0 = time.perf_counter()
@@ -194,7 +204,7 @@ def assemble_table(job: TableJob, cache_root: str, probe: Probe | None = None, *
     """
     import warnings
 
-    _log_start(f"usdfiber-assemble-{job.key[:24]}")
+    _log_start(f"usdfiber-assemble-{job.key[:24]}", probe)
     verify_probe(probe, cache_root)
     cache = TableCache(cache_root)
     t0 = time.perf_counter()

@@ -131,7 +131,7 @@ __all__ = ["BYTES_PER_POINT", "ExpansionEstimate", "estimate_expansion", "expand
 #: Peak bytes per output control point of :func:`expand_yarn` and its B-spline curve geometry
 #: (the samples, the interpolation step, per-curve arrays and the curve conversion): measured
 #: 104-124 with tracemalloc on ORA 120 and CNe 50 yarns (staple and filament);
-#: tests/test_memory_budget.py checks that it stays an upper bound.
+#: tests/core/test_memory_budget.py checks that it stays an upper bound.
 BYTES_PER_POINT = 200
 
 

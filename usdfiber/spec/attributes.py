@@ -6,7 +6,7 @@ and allowed tokens come from USD's schema registry; units and ranges from each a
 ``usdFiber`` customData in ``schema/schema.usda`` (through the generated module, since
 usdGenSchema does not carry property customData into the registry). The validators, the
 authoring API and the spec readers take their names and ranges from here, so a schema
-change they do not follow fails a test (``tests/test_attributes.py``).
+change they do not follow fails a test (``tests/spec/test_attributes.py``).
 
 Ranges are :class:`Interval` values parsed from the schema's interval notation:
 ``"(0, 1000]"``, ``"[0, inf)"``, ``"(-inf, inf)"``.

@@ -41,6 +41,7 @@ from typing import Any, Iterable, Iterator
 
 from pxr import Usd, UsdValidation, Work
 
+from usdfiber.errors import short_path
 from usdfiber.stage_io import (captured_stderr, composition_problems, open_stage,
                                stage_metrics_problems)
 
@@ -116,17 +117,8 @@ def format_problem(p: Problem) -> str:
     where = p.prim + (f".{p.attribute}" if p.attribute else "")
     if p.time is not None:
         where += f" @ {p.time:g}"
-    layer = f"  [{_short_layer(p.layer)}]" if p.layer else ""
+    layer = f"  [{short_path(p.layer)}]" if p.layer else ""
     return f"{where}: {p.code}: {p.message}{layer}"
-
-
-def _short_layer(identifier: str) -> str:
-    # Absolute paths are long; the current directory is implied.
-    try:
-        rel = os.path.relpath(identifier)
-        return rel if not rel.startswith("..") and os.path.exists(identifier) else identifier
-    except ValueError:
-        return identifier
 
 
 def problem_to_dict(p: Problem) -> dict[str, Any]:

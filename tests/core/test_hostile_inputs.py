@@ -1,0 +1,397 @@
+"""A hostile corpus, made at test time: stages, table files, curve files and command lines that
+are wrong in every way we could think of. Each gets its specific one-line error (or its
+documented warning) from the command that reads it, never a traceback.
+
+Cases run in this process through ``usdfiber.cli.main`` (an exception escaping it, the
+traceback, fails the case). Cache states are in tests/bake/test_hostile_cache.py.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+import usdfiber  # noqa: F401 - registers the schemas
+from usdfiber.cli import main
+from usdfiber.spec.attributes import attributes
+
+CORPUS = Path(__file__).resolve().parents[1] / "corpus"
+
+
+@dataclass(frozen=True)
+class Case:
+    """``argv(tmp)`` writes the input under ``tmp`` and gives the command line; the command
+    must exit ``rc`` and its stderr (stdout when ``stream`` says so) match ``expect``."""
+
+    id: str
+    argv: Callable[[Path], list[str]]
+    rc: int
+    expect: str
+    stream: str = "err"
+
+
+def run_case(case: Case, tmp: Path, capsys) -> None:
+    argv = case.argv(tmp)
+    try:
+        rc = main(argv)
+    except SystemExit as exc:   # argparse's own errors
+        rc = exc.code
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    text = err if case.stream == "err" else out
+    assert rc == case.rc, f"{case.id}: exit {rc}, stderr: {err[-2000:]}"
+    assert re.search(case.expect, text), f"{case.id}: expected {case.expect!r} in: {text[-2000:]}"
+    if rc == 2:
+        # One line: the error is the last line (argparse may print its usage above it).
+        last = err.strip().splitlines()[-1]
+        assert re.search(case.expect, last) and "error:" in last
+
+
+# ---- stages --------------------------------------------------------------------------------------
+
+STAGE = '''#usda 1.0
+(
+    metersPerUnit = 0.001
+    upAxis = "Y"
+)
+def BasisCurves "Fibers" (
+    prepend apiSchemas = [{apis}]
+)
+{{
+    uniform token basis = "bspline"
+    int[] curveVertexCounts = [4]
+    point3f[] points = [(0, 0, 0), (1, 1, 0), (2, 1, 0), (3, 0, 0)]
+    float[] widths = [{width}] (interpolation = "constant")
+    {extra}
+}}
+{more}
+'''
+
+
+def _stage(extra: str, *, yarn: bool = False, more: str = "") -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        apis = '"FiberAPI", "FiberYarnAPI"' if yarn else '"FiberAPI"'
+        (tmp / "s.usda").write_text(STAGE.format(apis=apis, width="0.25" if yarn else "0.01", extra=extra, more=more))
+        return ["bake", str(tmp / "s.usda"), "--dry-run", "--cache-dir", str(tmp / "cache")]
+    return argv
+
+
+_CODES = "(ValueOutOfRange|NonFiniteValue|WrongValueType|InvertedRange)"
+
+
+def _attribute_cases(api: str) -> list[Case]:
+    """Each attribute of ``api`` below and above its valid range, NaN, and of the wrong type."""
+    cases = []
+    yarn = api == "FiberYarnAPI"
+    for name, spec in attributes(api).items():
+        t, u = spec.type_name, "uniform " if spec.uniform else ""
+        if spec.is_relationship or not t:
+            continue
+        values = []
+        if t in ("float", "int") and spec.valid is not None:
+            lo, hi = spec.valid.lo, spec.valid.hi
+            if lo > -math.inf:
+                values.append(("below", f"{u}{t} {name} = {lo - 1 if t == 'int' else lo - 1.0}"))
+            # A molar mass is only used with extinctionSource "molar" (a value beyond the range
+            # is reported there: tests/corpus/bad/molar_mass_zero.usda).
+            if hi < math.inf and name != "fiber:dye:molarMass":
+                values.append(("above", f"{u}{t} {name} = {int(hi) + 1 if t == 'int' else hi * 2 + 1}"))
+        if t == "float":
+            values.append(("nan", f"{u}float {name} = nan"))
+        values.append(("string", f'{u}string {name} = "x"'))
+        for label, line in values:
+            cases.append(Case(f"stage-{name}-{label}", _stage(line, yarn=yarn), 1,
+                              rf"{re.escape(name.split(':')[0])}.*: {_CODES}: .*{re.escape(name)}"
+                              if label != "string" else rf"{re.escape(name)}: WrongValueType"))
+    return cases
+
+
+PROFILE = '''def Scope "Profile" (
+    prepend apiSchemas = ["FiberProfileAPI"]
+)
+{{
+    uniform {type} fiberProfile:points = {points}
+    uniform int[] fiberProfile:loopVertexCounts = [{n}]
+}}
+'''
+_USER = '''uniform token fiber:profile = "user"
+    rel fiber:profile:sources = </Profile>'''
+
+STAGE_CASES = _attribute_cases("FiberAPI") + _attribute_cases("FiberYarnAPI") + [
+    Case("stage-variant-count-int-max", _stage("uniform int fiber:profile:variantCount = 2147483647"), 1,
+         r"variantCount = 2147483647; expected a variant count in \[1, 64\]"),
+    Case("stage-variant-count-4.5", _stage("uniform float fiber:profile:variantCount = 4.5"), 1,
+         r"variantCount is authored as float; expected int"),
+    Case("stage-ior-1e30", _stage("float fiber:ior:parallel = 1e30"), 1,
+         r"fiber:ior:parallel = 1e\+30; expected a refractive index in \[1, 3\]"),
+    Case("stage-ior-inf", _stage("float fiber:ior:perpendicular = inf"), 1, r"fiber:ior:perpendicular: NonFiniteValue"),
+    Case("stage-profile-float3", _stage(_USER, more=PROFILE.format(
+        type="float3[]", points="[(0, 0, 0), (10, 0, 0), (10, 10, 0), (0, 10, 0)]", n=4)), 1,
+        r"fiberProfile:points: WrongValueType: fiberProfile:points is authored as float3\[\]; expected float2\[\]"),
+    Case("stage-profile-bowtie", _stage(_USER, more=PROFILE.format(
+        type="float2[]", points="[(0, 0), (10, 10), (10, 0), (0, 6)]", n=4)), 1, r"ProfileSelfIntersecting"),
+    Case("stage-profile-two-points", _stage(_USER, more=PROFILE.format(type="float2[]", points="[(0, 0), (1, 1)]",
+                                                                        n=2)), 1, r"ProfileTooFewPoints"),
+    Case("stage-profile-nan", _stage(_USER, more=PROFILE.format(
+        type="float2[]", points="[(0, 0), (nan, 0), (10, 10)]", n=3)), 1,
+        r"fiberProfile:points: ProfilePointsNotFinite: 1 points contain NaN or Inf \(first: point 1\)"),
+    Case("stage-profile-counts-int-max", _stage(_USER, more=PROFILE.format(
+        type="float2[]", points="[(0, 0), (10, 0), (10, 10)]", n=2147483647)), 1, r"ProfileCountsMismatch"),
+    Case("stage-points-inf", lambda tmp: _write_and_bake(
+        tmp, STAGE.format(apis='"FiberAPI"', width="0.01", extra="", more="").replace("(3, 0, 0)", "(inf, 0, 0)")),
+        1, r"PointsNotFinite"),
+]
+
+
+def _write_and_bake(tmp: Path, text: str) -> list[str]:
+    (tmp / "s.usda").write_text(text)
+    return ["bake", str(tmp / "s.usda"), "--dry-run", "--cache-dir", str(tmp / "cache")]
+
+
+def _corpus_cases() -> list[Case]:
+    """Every file of tests/corpus/bad through ``bake --dry-run``: unusable files exit 2, files
+    with check errors are refused with check's first error (exit 1), the rest list their
+    tables (exit 0; a missing or damaged table asset is what a bake makes)."""
+    expected = json.loads((CORPUS / "expected.json").read_text())
+    cases = []
+    for name, problems in sorted(expected.items()):
+        errors = [p for p in problems if p["severity"] == "error"]
+        path = str(CORPUS / "bad" / name)
+
+        def argv(tmp: Path, path: str = path) -> list[str]:
+            return ["bake", path, "--dry-run", "--cache-dir", str(tmp / "cache")]
+
+        unusable = [p for p in errors if p["code"] in ("EmptyFile", "NotUsd", "SyntaxError")]
+        blocking = [p for p in errors if p["code"] not in ("TableMissing", "TableUnreadable")]
+        if unusable:
+            cases.append(Case(f"corpus-{name}", argv, 2, re.escape(Path(name).name)))
+        elif blocking:
+            cases.append(Case(f"corpus-{name}", argv, 1, rf"not baking:(.|\n)*{re.escape(blocking[0]['message'])}"))
+        else:
+            cases.append(Case(f"corpus-{name}", argv, 0, r"\d+ tables?$|^$", stream="out"))
+    return cases
+
+
+# ---- table files ---------------------------------------------------------------------------------
+
+def _file(name: str, data: bytes | None = None, make: Callable[[Path], None] | None = None,
+          command: tuple[str, ...] = ("table", "inspect")) -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        p = tmp / name
+        if make is not None:
+            make(p)
+        elif data is not None:
+            p.write_bytes(data)
+        return [*command, str(p)]
+    return argv
+
+
+def _zip(entries: dict[str, bytes]) -> Callable[[Path], None]:
+    def make(p: Path) -> None:
+        with zipfile.ZipFile(p, "w") as z:
+            for k, v in entries.items():
+                z.writestr(k, v)
+    return make
+
+
+TABLE_CASES = [
+    Case("table-empty", _file("t.npz", b""), 2, r"t.npz: truncated or corrupt: empty file"),
+    Case("table-garbage", _file("t.npz", b"\x00\x01garbage" * 10), 2, r"t.npz: not a usdfiber table \(not an .npz"),
+    Case("table-zip-without-header", _file("t.npz", make=_zip({"p.npy": b"xx"})), 2, r"not a usdfiber table \(no header"),
+    Case("table-header-not-json", _file("t.npz", make=_zip({"header.json": b"{not json"})), 2,
+         r"t.npz: not a usdfiber table \(no header entry\)"),
+    Case("table-plain-npz", _file("t.npz", make=lambda p: np.savez(p, a=np.zeros(3))), 2, r"not a usdfiber table"),
+    Case("table-directory", _file("t.npz", make=lambda p: p.mkdir()), 2, r"t.npz: not a usdfiber table \(not a regular"),
+    Case("table-missing", _file("t.npz"), 2, r"t.npz: missing"),
+    Case("table-png-bytes", _file("t.npz", b"\x89PNG\r\n\x1a\n" + b"\0" * 100), 2, r"not a usdfiber table"),
+    Case("table-truncated-zip", _file("t.npz", make=lambda p: (_zip({"header.json": b"{}" * 500})(p),
+                                                               p.write_bytes(p.read_bytes()[:60]))), 2,
+         r"t.npz: truncated or corrupt: File is not a zip file"),
+    Case("table-plot-without-angles", _file("t.npz", b"garbage", command=("table", "plot")), 2,
+         r"required: --theta-i, --phi-i, -o/--output"),
+    Case("table-plot-garbage", lambda tmp: (tmp.joinpath("t.npz").write_bytes(b"garbage"),
+                                            ["table", "plot", str(tmp / "t.npz"), "--theta-i", "0", "--phi-i", "0",
+                                             "-o", str(tmp / "p.png")])[1], 2, r"t.npz: not a usdfiber table"),
+]
+
+
+# ---- curve files ---------------------------------------------------------------------------------
+
+def _bcc(n_curves_header: int = 1, curves: list[tuple[int, list]] | None = None, magic: bytes = b"BCC",
+         size: int = 0x44, kind: bytes = b"PL", dims: int = 3) -> bytes:
+    curves = [(3, [(0, 0, 0), (1, 0, 0), (2, 1, 0)])] if curves is None else curves
+    n_points = sum(abs(n) for n, _ in curves)
+    head = magic + bytes([size]) + kind + bytes([dims, 1]) + struct.pack("<QQ", n_curves_header, n_points) + b"\0" * 40
+    body = b"".join(struct.pack("<i", n) + np.asarray(p, "<f4").tobytes() for n, p in curves)
+    return head + body
+
+
+def _hair(strands: int = 1, points: int = 3, flags: int = 2 | 4, dsegs: int = 2, thickness: float = 1.0,
+          pts: list | None = None, thick: list | None = None) -> bytes:
+    head = b"HAIR" + struct.pack("<IIII", strands, points, flags, dsegs) + struct.pack("<fff", thickness, 1.0, 0.0)
+    head += b"\0" * (128 - len(head))
+    pts = [(0, 0, 0), (1, 0, 0), (2, 1, 0)] if pts is None else pts
+    thick = [0.1] * len(pts) if thick is None else thick
+    body = np.asarray(pts, "<f4").tobytes()
+    if flags & 4:
+        body += np.asarray(thick, "<f4").tobytes()
+    return head + body
+
+
+def _import(name: str, data: bytes, *extra: str) -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        (tmp / name).write_bytes(data)
+        return ["import", str(tmp / name), "-o", str(tmp / "out.usda"), *extra]
+    return argv
+
+
+CURVE_CASES = [
+    Case("curves-empty", _import("c.bcc", b""), 2, r"c.bcc: empty file; expected a BCC or HAIR curve file"),
+    Case("curves-not-curves", _import("c.bcc", b"hello world" * 10), 2, r"c.bcc: not a BCC or HAIR file"),
+    Case("bcc-truncated-header", _import("c.bcc", b"BCC\x44C0\x03\x01"), 2, r"truncated header: the file has 8 bytes"),
+    Case("bcc-8-byte-values", _import("c.bcc", _bcc(size=0x88)), 2, r"c.bcc: byte count 0x88 is not supported"),
+    Case("bcc-unknown-type", _import("c.bcc", _bcc(kind=b"XX")), 2, r"c.bcc: curve type b'XX' is not supported"),
+    Case("bcc-2d", _import("c.bcc", _bcc(dims=2)), 2, r"curves have 2 dimensions; only 3D curves are supported"),
+    Case("bcc-zero-curves", _import("c.bcc", _bcc(n_curves_header=0)), 2, r"header says 0 curves; nothing to import"),
+    Case("bcc-more-curves-than-data", _import("c.bcc", _bcc(n_curves_header=1000)), 2,
+         r"c.bcc: header says 1000 curves but the file ends after 1"),
+    Case("bcc-curve-count-int-max", _import("c.bcc", _bcc(n_curves_header=2 ** 63)), 2,
+         r"c.bcc: header says 9223372036854775808 curves but the file ends after 1"),
+    Case("bcc-point-count-beyond-file", _import("c.bcc", _bcc(curves=[(100000, [(0, 0, 0)] * 3)])), 2,
+         r"c.bcc: the file ends inside curve 0: it has 100000 control points but the file holds only 3 more"),
+    Case("bcc-nan-point", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (np.nan, 0, 0), (2, 1, 0)])])), 2,
+         r"curve 0 point 1 has a non-finite coordinate"),
+    Case("bcc-inf-point", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (np.inf, 0, 0), (2, 1, 0)])])), 2,
+         r"non-finite coordinate"),
+    Case("bcc-one-point-polyline", _import("c.bcc", _bcc(curves=[(1, [(0, 0, 0)])])), 2,
+         r"curve 0 has 1 control point \(count 1\); an open polyline curve needs at least 2"),
+    Case("bcc-catmull-rom-3-points", _import("c.bcc", _bcc(kind=b"C0")), 2,
+         r"an open uniform Catmull-Rom curve needs at least 4"),
+    Case("bcc-overflowing-scale", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (3e30, 0, 0), (2, 1, 0)])]),
+                                          "--units-per-file-unit", "1e10"), 2,
+         r"c.bcc: points: coordinate 1 becomes 3e\+40 after scaling, beyond the float32 range .*--units-per-file-unit"),
+    Case("bcc-overflowing-width", _import("c.bcc", _bcc(), "--width", "1e39"), 2,
+         r"widths: width 0 becomes 1e\+39 after scaling.*--width"),
+    Case("bcc-unknown-preset", _import("c.bcc", _bcc(), "--preset", "kevlar"), 2,
+         r"/c/Curves: unknown fiber preset 'kevlar'; valid: polyester"),
+    Case("bcc-unknown-yarn", _import("c.bcc", _bcc(), "--yarn", "CNe 9999"), 2,
+         r"/c/Curves: unknown yarn preset 'CNe 9999'; valid: Skala 360"),
+    Case("bcc-bad-root", _import("c.bcc", _bcc(), "--root", "1 bad name"), 2, r"--root must be a valid prim name"),
+    Case("bcc-over-budget", _import("c.bcc", _bcc(), "--memory-budget", "100"), 2,
+         r"c.bcc: importing a curve file of \d+ bytes .* needs about .*--memory-budget"),
+    Case("hair-truncated-header", _import("h.hair", b"HAIR" + b"\0" * 20), 2, r"truncated header: the file has 24 bytes"),
+    Case("hair-zero-strands", _import("h.hair", _hair(strands=0)), 2, r"header says 0 strands; nothing to import"),
+    Case("hair-no-points-flag", _import("h.hair", _hair(flags=4)), 2, r"say the file has no points array"),
+    Case("hair-negative-count", _import("h.hair", _hair(points=2 ** 32 - 5)), 2, r"is negative as a signed 32-bit"),
+    Case("hair-ends-early", _import("h.hair", _hair(strands=1, points=30, dsegs=29)), 2, r"the file ends inside the"),
+    Case("hair-count-mismatch", _import("h.hair", _hair(strands=2, points=3, dsegs=2)), 2,
+         r"header says 3 points but 2 strands of 2 default segments have 6 points"),
+    Case("hair-zero-segments", _import("h.hair", _hair(dsegs=0, points=1, pts=[(0, 0, 0)])), 2,
+         r"default segment count of 0"),
+    Case("hair-negative-thickness", _import("h.hair", _hair(thick=[0.1, -1.0, 0.1])), 2,
+         r"thickness of point 1 is -1; thickness must"),
+    Case("hair-nan-point", _import("h.hair", _hair(pts=[(0, 0, 0), (0, np.nan, 0), (1, 1, 1)])), 2,
+         r"non-finite coordinate"),
+    Case("hair-thickness-overflow", _import("h.hair", _hair(thick=[1e30] * 3), "--units-per-file-unit", "1e9"), 2,
+         r"widths: width 0 becomes 1e\+39 after scaling"),
+    Case("curves-directory", lambda tmp: (tmp.joinpath("d.bcc").mkdir(), ["import", str(tmp / "d.bcc"), "-o",
+                                                                          str(tmp / "o.usda")])[1], 2,
+         r"d.bcc: is a directory, not a curve file"),
+    Case("curves-output-not-usd", _import("c.bcc", _bcc(), "-o", "x.txt"), 2, r"x.txt: the output must be a .usd"),
+]
+
+
+# ---- command lines ---------------------------------------------------------------------------------
+
+def _args(*words: str) -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        (tmp / "s.usda").write_text("#usda 1.0\n")
+        return [w.replace("{tmp}", str(tmp)) for w in words]
+    return argv
+
+
+_RANGE = r"must be an integer from 0 to 4294967295"
+CLI_CASES = [
+    Case("cli-unknown-command", _args("nosuch"), 2, r"invalid choice: 'nosuch'"),
+    Case("cli-bake-seed-negative", _args("bake", "--preset", "silk", "--seed", "-1"), 2, rf"--seed: {_RANGE}, got -1"),
+    Case("cli-bake-seed-2^32", _args("bake", "--preset", "silk", "--seed", str(2 ** 32)), 2, rf"--seed: {_RANGE}"),
+    Case("cli-bake-seed-text", _args("bake", "--preset", "silk", "--seed", "x"), 2, r"--seed: not an integer: 'x'"),
+    Case("cli-render-seed-negative", _args("render", "{tmp}/s.usda", "--seed", "-1"), 2, rf"--seed: {_RANGE}"),
+    Case("cli-render-lod-scale-negative", _args("render", "{tmp}/s.usda", "--lod-scale", "-1"), 2,
+         r"--lod-scale: must be a number >= 0, got '-1'"),
+    Case("cli-render-lod-scale-nan", _args("render", "{tmp}/s.usda", "--lod-scale", "nan"), 2,
+         r"--lod-scale: not a finite number"),
+    Case("cli-render-resolution-zero", _args("render", "{tmp}/s.usda", "--resolution", "0x0"), 2,
+         r"--resolution: resolution out of range"),
+    Case("cli-render-resolution-huge", _args("render", "{tmp}/s.usda", "--resolution", "100000x100000"), 2,
+         r"--resolution: resolution out of range"),
+    Case("cli-render-resolution-text", _args("render", "{tmp}/s.usda", "--resolution", "big"), 2,
+         r"--resolution: expected WIDTHxHEIGHT"),
+    Case("cli-render-spp-zero", _args("render", "{tmp}/s.usda", "--spp", "0"), 2, r"--spp: must be >= 1, got 0"),
+    Case("cli-render-frame-nan", _args("render", "{tmp}/s.usda", "--frame", "nan"), 2, r"--frame: not a finite"),
+    Case("cli-render-output-not-exr", _args("render", "{tmp}/s.usda", "-o", "{tmp}/x.png"), 2,
+         r"--output must name an .exr file"),
+    Case("cli-render-no-stage", _args("render"), 2, r"render: a STAGE is required"),
+    Case("cli-render-missing-stage", _args("render", "{tmp}/missing.usda"), 2, r"missing.usda"),
+    Case("cli-render-memory-budget-bad", _args("render", "{tmp}/s.usda", "--memory-budget", "lots"), 2,
+         r"--memory-budget: not a memory size: 'lots'"),
+    Case("cli-render-memory-budget-zero", _args("render", "{tmp}/s.usda", "--memory-budget", "0"), 2,
+         r"--memory-budget: a memory size must be at least 1 byte"),
+    Case("cli-bake-nothing", _args("bake"), 2, r"nothing to bake: give STAGE files"),
+    Case("cli-bake-resolution-7", _args("bake", "--preset", "silk", "--resolution", "7", "--dry-run"), 2,
+         r"--resolution 7 deg must divide 90 deg"),
+    Case("cli-bake-resolution-negative", _args("bake", "--preset", "silk", "--resolution", "-2"), 2,
+         r"--resolution: must be a positive number"),
+    Case("cli-bake-photons-zero", _args("bake", "--preset", "silk", "--photons", "0"), 2, r"--photons: must be >= 1"),
+    Case("cli-bake-batches-one", _args("bake", "--preset", "silk", "--batches", "1", "--dry-run"), 2,
+         r"batches must be >= 2"),
+    Case("cli-bake-target-error-two", _args("bake", "--preset", "silk", "--target-error", "2", "--dry-run"), 2,
+         r"--target-error must be below 1, got 2"),
+    Case("cli-bake-unknown-preset", _args("bake", "--preset", "nope", "--dry-run"), 2,
+         r"unknown fiber preset 'nope'; valid: polyester"),
+    Case("cli-bake-params-missing", _args("bake", "--params", "{tmp}/p.json", "--dry-run"), 2, r"p.json: no such file"),
+    Case("cli-bake-memory-budget-bad", _args("bake", "--preset", "silk", "--memory-budget=-3G"), 2,
+         r"--memory-budget: not a memory size"),
+    Case("cli-bake-jobs-zero", _args("bake", "--preset", "silk", "--jobs", "0"), 2, r"--jobs: must be >= 1"),
+    Case("cli-cloth-rows-zero", _args("cloth", "stockinette", "--rows", "0", "-o", "{tmp}/c.usda"), 2,
+         r"--rows: must be >= 1, got 0"),
+    Case("cli-cloth-million-squared", _args("cloth", "stockinette", "--rows", "1000000", "--loops", "1000000", "-o",
+                                            "{tmp}/c.usda"), 2, r"16000003000000 control points\) needs about"),
+    Case("cli-cloth-weave-with-rows", _args("cloth", "plain", "--rows", "3", "-o", "{tmp}/c.usda"), 2,
+         r"--rows does not apply to weaves"),
+    Case("cli-cloth-output-not-usd", _args("cloth", "plain", "-o", "{tmp}/c.txt"), 2,
+         r"--output must be a .usd, .usda or .usdc file"),
+    Case("cli-cloth-unknown-yarn", _args("cloth", "plain", "--yarn", "CNe 9999", "-o", "{tmp}/c.usda"), 2,
+         r"cloth plain: unknown yarn preset 'CNe 9999'"),
+    Case("cli-cloth-over-budget", _args("cloth", "satin", "--memory-budget", "1K", "-o", "{tmp}/c.usda"), 2,
+         r"cloth satin of 20 warps x 20 wefts .* more than the memory budget of 1 KiB \(--memory-budget\)"),
+    Case("cli-import-no-output", _args("import", "{tmp}/x.bcc"), 2, r"required: -o/--output"),
+    Case("cli-import-width-negative", _args("import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--width", "-1"), 2,
+         r"--width: must be a positive number"),
+    Case("cli-import-scale-inf", _args("import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--units-per-file-unit", "inf"),
+         2, r"--units-per-file-unit: not a finite number"),
+    Case("cli-check-nothing", _args("check"), 2, r"required: STAGE"),
+    Case("cli-table-inspect-nothing", _args("table", "inspect"), 2, r"required: FILE"),
+]
+
+ALL = STAGE_CASES + _corpus_cases() + TABLE_CASES + CURVE_CASES + CLI_CASES
+
+
+def test_the_corpus_is_large_and_covers_every_category():
+    assert len(ALL) >= 150
+    assert len({c.id for c in ALL}) == len(ALL)
+    kinds = {c.id.split("-")[0] for c in ALL}
+    assert {"stage", "corpus", "table", "curves", "bcc", "hair", "cli"} <= kinds
+
+
+@pytest.mark.parametrize("case", ALL, ids=[c.id for c in ALL])
+def test_hostile_input(case, tmp_path, capsys):
+    run_case(case, tmp_path, capsys)
