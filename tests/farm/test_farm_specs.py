@@ -72,3 +72,18 @@ def test_bad_shards_are_one_line_errors(text, words):
     with pytest.raises(ShardSpecError) as e:
         parse_shard(text)
     assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_probes_outlive_their_bake_and_stale_ones_are_removed(tmp_path):
+    """A task shared by two clients may be retried after one client finished: its probe must
+    still be there. Probes older than PROBE_LIFETIME_S are removed by the next client."""
+    import os
+
+    from usdfiber.farm.cluster import PROBE_LIFETIME_S, verify_probe, write_probe
+
+    old, fresh = write_probe(tmp_path), write_probe(tmp_path)
+    past = os.stat(old.path).st_mtime - PROBE_LIFETIME_S - 10
+    os.utime(old.path, (past, past))
+    write_probe(tmp_path)
+    assert not os.path.exists(old.path)
+    verify_probe(fresh, tmp_path)  # still readable: raises FarmError otherwise

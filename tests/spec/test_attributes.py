@@ -139,6 +139,10 @@ def _range_problems(name: str, value) -> list:
     when = FACTS[name].get("validWhen")
     if when:
         prim.CreateAttribute(when[0], Sdf.ValueTypeNames.Find(attribute(when[0]).type_name)).Set(when[1])
+    if name in (Fiber.ROUGHNESS_RA, Fiber.ROUGHNESS_PROFILE_LENGTH):
+        # The attribute's own range only: beta = arctan(Ra / l), checked against beta's range
+        # while the source is "ra", has its own test (test_check_render_defects).
+        prim.CreateAttribute(Fiber.ROUGHNESS_SOURCE, Sdf.ValueTypeNames.Token).Set("beta")
     if name == Fiber.DYE_SPECTRUM_VALUES or name == Fiber.DYE_SPECTRUM_WAVELENGTHS:
         other = Fiber.DYE_SPECTRUM_WAVELENGTHS if name == Fiber.DYE_SPECTRUM_VALUES else Fiber.DYE_SPECTRUM_VALUES
         prim.CreateAttribute(other, Sdf.ValueTypeNames.FloatArray).Set([1.0])

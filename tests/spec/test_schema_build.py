@@ -56,6 +56,7 @@ def test_cmake_job_checks_and_installs(tmp_path, stale):
     if not stale:
         shutil.copytree(ROOT / "schema", src / "schema")
     shutil.copy(ROOT / "CMakeLists.txt", src / "CMakeLists.txt")
+    shutil.copy(ROOT / "usdFiber.py", src / "usdFiber.py")  # installed beside the package
     build, prefix = tmp_path / "build", tmp_path / "prefix"
     run = lambda *a: subprocess.run(list(a), capture_output=True, text=True)  # noqa: E731
     cfg = run("cmake", "-S", str(src), "-B", str(build), f"-DPython3_EXECUTABLE={sys.executable}",

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FarmError", "LocalFarm", "Probe", "TASK_LOCK", "check_workers", "connect", "verify_probe",
+__all__ = ["FarmError", "LocalFarm", "PROBE_LIFETIME_S", "Probe", "TASK_LOCK", "check_workers", "connect", "verify_probe",
            "write_probe"]
 
 #: Serialises usdfiber tasks within one worker process (see the module docstring).
@@ -46,12 +46,28 @@ class Probe:
     token: str
 
 
+#: Probes stay for this long after a bake (seconds). A task that two clients share runs with
+#: one client's probe; if that client finished first and deleted it, a retry of the task would
+#: fail its check. So no client deletes its own probe: each new probe removes the stale ones.
+PROBE_LIFETIME_S = 86400.0
+
+
 def write_probe(cache_root: str | os.PathLike[str]) -> Probe:
-    """Write a uniquely named probe file under ``cache_root/farm/`` (atomically)."""
+    """Write a uniquely named probe file under ``cache_root/farm/`` (atomically), removing
+    probes older than :data:`PROBE_LIFETIME_S`."""
+    import time
+
     from usdfiber.atomic_file import write_atomic
 
     d = Path(cache_root) / "farm"
     d.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in d.glob("probe-*"):
+        try:
+            if now - old.stat().st_mtime > PROBE_LIFETIME_S:
+                old.unlink()
+        except OSError:
+            pass  # removed by another client meanwhile
     token = secrets.token_hex(16)
     path = d / f"probe-{uuid.uuid4().hex}"
     write_atomic(path, lambda tmp: Path(tmp).write_text(token))

@@ -69,81 +69,73 @@ def bake_on_dask(client: Any, requests: Iterable[TableRequest], settings: BakeSe
     root = str(cache.root.absolute())
     cache.root.mkdir(parents=True, exist_ok=True)
     probe = write_probe(root)
-    try:
-        workers = check_workers(client, root, probe)
-        summary.workers = len(workers)
-        jobs = table_jobs(requests, st, cache)
-        serving = {j.key: served_by(cache, j) for j in jobs}
-        missing = [j for j in jobs if serving[j.key] is None]
-        for j in jobs:
-            if serving[j.key] is not None:
-                release_chunks(cache, j.key)   # chunks of a task that outlived the table's assembly
-                summary.tables.append({"key": serving[j.key], "label": j.label, "status": "cached",
-                                       "path": str(cache.table_path(serving[j.key])), "prims": j.request.prims[:16]})
-        tasks = plan_tasks(missing, task_photons)
-        summary.tasks["total"] = len(tasks)
-        todo = [t for t in tasks if pending_directions(cache, t) > 0]
-        summary.tasks["skipped"] = len(tasks) - len(todo)
-        total = sum(len(t.directions) for t in tasks)
-        pending = {t.name: pending_directions(cache, t) for t in todo}
-        summary.times["plan"] = time.perf_counter() - t0
-        bar = FarmProgress(total, initial=total - sum(pending.values()), desc=f"bake {len(missing)} tables",
-                           show=show_progress, file=log)
-        by_key = {j.key: j for j in jobs}
-        trace_futs: dict[str, Any] = {}
-        for t in todo:
-            trace_futs[t.name] = client.submit(run_trace_task, by_key[t.key], t, root, probe, key=t.name,
-                                               retries=retries, pure=False)
-        asm_futs = {}
-        for j in missing:
-            deps = [trace_futs[t.name] for t in todo if t.key == j.key]
-            asm_futs[j.key] = client.submit(assemble_table, j, root, probe, *deps,
-                                            key=f"usdfiber-assemble-{j.key}", retries=retries, pure=False)
-        what = {f.key: (t.key, t.name) for t in todo for f in [trace_futs[t.name]]}
-        what.update({f.key: (k, f"usdfiber-assemble-{k[:24]}") for k, f in asm_futs.items()})
-        failed_tables: set[str] = set()
-        lost = False
-        for fut in as_completed(list(trace_futs.values()) + list(asm_futs.values())):
-            if fut.status in ("cancelled", "lost") or client.status not in ("running", "connecting"):
-                lost = True
-                break
-            table_key, name = what[fut.key]
-            if fut.status == "error":
-                if table_key in failed_tables:
-                    continue  # the assembly of a table whose trace already failed: reported once
-                failed_tables.add(table_key)
-                f = FarmFailure(name, _last_worker(client.get_events(EVENT_TOPIC), name),
-                                f"{by_key[table_key].label}: {_error_text(fut.exception())}")
-                summary.failures.append(f)
-                bar.log(f"usdfiber: error: {f.line()}")
-                continue
-            res = fut.result()
-            if "traced" in res:
-                summary.tasks["run"] += 1
-                bar.advance(pending.get(name, 0))
-            else:
-                summary.tables.append(res)
-                bar.advance(0, f"{res['label']}: error {res['error_rms']:.4f} rms")
-        summary.times["bake"] = bar.close()
-        if lost:
-            raise FarmError(f"lost the Dask scheduler {summary.scheduler} mid-bake; finished directions are kept "
-                            f"in {cache.root / 'partial'}: run the bake again to resume")
-        events = client.get_events(EVENT_TOPIC)
-        retried = count_retries(events, list(trace_futs) + [f"usdfiber-assemble-{k[:24]}" for k in asm_futs],
-                                run=probe.path)
-        summary.tasks["retries"] = sum(retried.values())
-        summary.tasks["failed"] = len(summary.failures)
-        for name, n in sorted(retried.items()):
-            if n:
-                print(f"usdfiber: task {name} was retried {n} time{'s' if n > 1 else ''} "
-                      f"(its worker died or it failed)", file=log)
-        summary.ok = not summary.failures
-        summary.times["total"] = time.perf_counter() - t0
-        return summary
-    finally:
-        try:
-            import os
-
-            os.unlink(probe.path)
-        except OSError:
-            pass
+    workers = check_workers(client, root, probe)
+    summary.workers = len(workers)
+    jobs = table_jobs(requests, st, cache)
+    serving = {j.key: served_by(cache, j) for j in jobs}
+    missing = [j for j in jobs if serving[j.key] is None]
+    for j in jobs:
+        if serving[j.key] is not None:
+            release_chunks(cache, j.key)   # chunks of a task that outlived the table's assembly
+            summary.tables.append({"key": serving[j.key], "label": j.label, "status": "cached",
+                                   "path": str(cache.table_path(serving[j.key])), "prims": j.request.prims[:16]})
+    tasks = plan_tasks(missing, task_photons)
+    summary.tasks["total"] = len(tasks)
+    todo = [t for t in tasks if pending_directions(cache, t) > 0]
+    summary.tasks["skipped"] = len(tasks) - len(todo)
+    total = sum(len(t.directions) for t in tasks)
+    pending = {t.name: pending_directions(cache, t) for t in todo}
+    summary.times["plan"] = time.perf_counter() - t0
+    bar = FarmProgress(total, initial=total - sum(pending.values()), desc=f"bake {len(missing)} tables",
+                       show=show_progress, file=log)
+    by_key = {j.key: j for j in jobs}
+    trace_futs: dict[str, Any] = {}
+    for t in todo:
+        trace_futs[t.name] = client.submit(run_trace_task, by_key[t.key], t, root, probe, key=t.name,
+                                           retries=retries, pure=False)
+    asm_futs = {}
+    for j in missing:
+        deps = [trace_futs[t.name] for t in todo if t.key == j.key]
+        asm_futs[j.key] = client.submit(assemble_table, j, root, probe, *deps,
+                                        key=f"usdfiber-assemble-{j.key}", retries=retries, pure=False)
+    what = {f.key: (t.key, t.name) for t in todo for f in [trace_futs[t.name]]}
+    what.update({f.key: (k, f"usdfiber-assemble-{k[:24]}") for k, f in asm_futs.items()})
+    failed_tables: set[str] = set()
+    lost = False
+    for fut in as_completed(list(trace_futs.values()) + list(asm_futs.values())):
+        if fut.status in ("cancelled", "lost") or client.status not in ("running", "connecting"):
+            lost = True
+            break
+        table_key, name = what[fut.key]
+        if fut.status == "error":
+            if table_key in failed_tables:
+                continue  # the assembly of a table whose trace already failed: reported once
+            failed_tables.add(table_key)
+            f = FarmFailure(name, _last_worker(client.get_events(EVENT_TOPIC), name),
+                            f"{by_key[table_key].label}: {_error_text(fut.exception())}")
+            summary.failures.append(f)
+            bar.log(f"usdfiber: error: {f.line()}")
+            continue
+        res = fut.result()
+        if "traced" in res:
+            summary.tasks["run"] += 1
+            bar.advance(pending.get(name, 0))
+        else:
+            summary.tables.append(res)
+            bar.advance(0, f"{res['label']}: error {res['error_rms']:.4f} rms")
+    summary.times["bake"] = bar.close()
+    if lost:
+        raise FarmError(f"lost the Dask scheduler {summary.scheduler} mid-bake; finished directions are kept "
+                        f"in {cache.root / 'partial'}: run the bake again to resume")
+    events = client.get_events(EVENT_TOPIC)
+    retried = count_retries(events, list(trace_futs) + [f"usdfiber-assemble-{k[:24]}" for k in asm_futs],
+                            run=probe.path)
+    summary.tasks["retries"] = sum(retried.values())
+    summary.tasks["failed"] = len(summary.failures)
+    for name, n in sorted(retried.items()):
+        if n:
+            print(f"usdfiber: task {name} was retried {n} time{'s' if n > 1 else ''} "
+                  f"(its worker died or it failed)", file=log)
+    summary.ok = not summary.failures
+    summary.times["total"] = time.perf_counter() - t0
+    return summary
