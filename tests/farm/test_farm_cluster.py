@@ -13,29 +13,12 @@ import time
 import pytest
 
 import usdfiber  # noqa: F401
-from farm_util import (COARSE_ARGS, COARSE_SETTINGS, Processes, fiber_stage, free_port, run_usdfiber, same_table,
+from farm_util import (COARSE_ARGS, Processes, free_port, run_usdfiber, same_table,
                        wait_until)
-from usdfiber.bake.cache import TableCache
-from usdfiber.bake.requests import tables_for_stage
-from usdfiber.bake.settings import BakeSettings
 from usdfiber.bake.table import BcsdfTable
 from usdfiber.farm.progress import EVENT_TOPIC
-from usdfiber.stage_io import open_stage
 
-ST = BakeSettings(**COARSE_SETTINGS)
 TASK = ["--task-photons", "64000"]      # 32 of the table's 144 directions per task
-
-
-@pytest.fixture(scope="module")
-def stage(tmp_path_factory):
-    return fiber_stage(tmp_path_factory.mktemp("stage") / "silk.usda", ("silk",))
-
-
-@pytest.fixture(scope="module")
-def reference(stage, tmp_path_factory):
-    """The table baked in this process, without a farm."""
-    req = tables_for_stage(open_stage(str(stage)))[0]
-    return TableCache(tmp_path_factory.mktemp("ref")).get_or_bake(req, ST).table
 
 
 def test_worker_killed_mid_task_loses_only_that_task(stage, reference, tmp_path):

@@ -8,26 +8,10 @@ import signal
 import pytest
 
 import usdfiber  # noqa: F401
-from farm_util import COARSE_ARGS, COARSE_SETTINGS, Processes, fiber_stage, run_usdfiber, same_table, wait_until
-from usdfiber.bake.cache import TableCache
-from usdfiber.bake.requests import tables_for_stage
-from usdfiber.bake.settings import BakeSettings
+from farm_util import COARSE_ARGS, Processes, run_usdfiber, same_table, wait_until
 from usdfiber.bake.table import BcsdfTable
-from usdfiber.stage_io import open_stage
 
-ST = BakeSettings(**COARSE_SETTINGS)
 TASK = ["--task-photons", "64000"]      # 5 tasks of <= 32 directions: shard 1/3 gets 2, 2/3 2, 3/3 1
-
-
-@pytest.fixture(scope="module")
-def stage(tmp_path_factory):
-    return fiber_stage(tmp_path_factory.mktemp("stage") / "silk.usda", ("silk",))
-
-
-@pytest.fixture(scope="module")
-def reference(stage, tmp_path_factory):
-    req = tables_for_stage(open_stage(str(stage)))[0]
-    return TableCache(tmp_path_factory.mktemp("ref")).get_or_bake(req, ST).table
 
 
 def shard(stage, spec, cache):
