@@ -14,6 +14,7 @@ import pytest
 from usdfiber.bake import binning, exact, profiles, tracer
 from usdfiber.bake.baker import bake_table, batch_seed, is_rotationally_symmetric
 from usdfiber.bake.grid import Grid
+from usdfiber.bake import settings as settings_module
 from usdfiber.bake.settings import BakeSettings
 from usdfiber.bake.table import BcsdfTable
 
@@ -367,7 +368,6 @@ def test_grouped_directions_bake_the_same_table(monkeypatch):
     """Directions traced together (shared tracer launches) give the table baked one direction
     at a time, value for value: plain, target-error (directions needing different numbers of
     extra batches) and box-sampled bakes, non-round and cuticle fibers."""
-    from usdfiber.bake import baker
 
     silk = unit(profiles.builtin_profiles("silk", 1)[0])
     cases = [(silk, None, BakeSettings(resolution_deg=30, photons=4000, batches=2)),
@@ -377,7 +377,7 @@ def test_grouped_directions_bake_the_same_table(monkeypatch):
              (unit(profiles.circle()), (3.0, 0.02, 0.3), BakeSettings(resolution_deg=30, photons=2000, batches=2))]
     for prof, cut, st in cases:
         grouped = bake_table(prof, ETA, 6.5, cut, st)
-        monkeypatch.setattr(baker, "GROUP_DIRECTIONS", 1)
+        monkeypatch.setattr(settings_module, "GROUP_DIRECTIONS", 1)
         alone = bake_table(prof, ETA, 6.5, cut, st)
         monkeypatch.undo()
         assert grouped.arrays.keys() == alone.arrays.keys()

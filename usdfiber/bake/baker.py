@@ -8,8 +8,9 @@ How: :class:`~usdfiber.bake.settings.BakeSettings`. The statistics of one direct
 (batches, absorption levels, error estimate, target-error mode, normalization):
 :mod:`usdfiber.bake.statistics`; the table made of them: :mod:`usdfiber.bake.assembly`.
 
-Directions are traced together: batch ``b`` of up to :data:`GROUP_DIRECTIONS` directions
-(about :data:`GROUP_PHOTONS` photons) is one tracer launch. Each direction still gets exactly
+Directions are traced together: batch ``b`` of up to
+:data:`~usdfiber.bake.settings.GROUP_DIRECTIONS` directions (about
+:data:`~usdfiber.bake.settings.GROUP_PHOTONS` photons) is one tracer launch. Each direction still gets exactly
 its own photons (batch ``b`` of every direction is the tracer stream :func:`batch_seed`), so
 a table does not depend on the grouping; what is shared is the tracer's fixed cost per
 launch (recording and launching its phases until the slowest photon is done), which
@@ -66,7 +67,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import check_memory, reciprocal_average
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
-from usdfiber.bake.settings import BakeError, BakeSettings
+from usdfiber.bake.settings import GROUP_PHOTONS, BakeError, BakeSettings, directions_per_group
 from usdfiber.bake.statistics import BakeContext, DirectionStatistics
 from usdfiber.bake.storage import WIDTH_SAMPLES
 from usdfiber.bake.table import BcsdfTable
@@ -74,14 +75,11 @@ from usdfiber.bake.table import BcsdfTable
 __all__ = [
     "DIRECTIONS_IN_MEMORY",
     "KEEP_CHUNK_BYTES",
-    "GROUP_DIRECTIONS",
-    "GROUP_PHOTONS",
     "ProgressFn",
     "bake_context",
     "bake_request",
     "bake_table",
     "batch_seed",
-    "directions_per_group",
     "envelope_width",
     "is_rotationally_symmetric",
     "assemble_from_chunks",
@@ -151,18 +149,6 @@ def batch_seed(seed: int, batch: int) -> int:
     value costs a kernel compilation.
     """
     return (int(seed) & 0xFFFFFFFF) * 65536 + int(batch)
-
-
-#: Photons per shared tracer launch when directions are traced together (the tracer's batch).
-GROUP_PHOTONS = 1 << 21
-#: At most this many directions are traced (and held in memory) together.
-GROUP_DIRECTIONS = 64
-
-
-def directions_per_group(settings: BakeSettings) -> int:
-    """Directions traced together: about :data:`GROUP_PHOTONS` photons per shared batch, at
-    most :data:`GROUP_DIRECTIONS`."""
-    return max(1, min(GROUP_DIRECTIONS, GROUP_PHOTONS // settings.photons_per_batch))
 
 
 def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict[str, Any]]:

@@ -13,7 +13,8 @@ from typing import Any
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "RENDER_BAKE_SETTINGS", "BakeError", "BakeSettings"]
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+           "RENDER_BAKE_SETTINGS", "BakeError", "BakeSettings", "directions_per_group"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
 BAKER_VERSION = 1
@@ -129,7 +130,7 @@ class BakeSettings:
         K = len(self.levels)
         per_direction = K * g.n_theta_o * g.n_phi_o
         item = 2 if self.storage == "float16" else 4
-        group = max(1, min(64, (1 << 21) // self.photons_per_batch))
+        group = directions_per_group(self)
         symmetrize = 4 * g.n_theta_i * g.n_phi_i * per_direction * 4 if "reciprocity" in self.estimator else 0
         return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * per_direction * 16
                 + (1 << 21) * 64 + symmetrize)
@@ -147,6 +148,18 @@ class BakeSettings:
         d["builtin_profile_vertices"] = BUILTIN_PROFILE_VERTICES
         d["baker_version"] = BAKER_VERSION
         return d
+
+
+#: Photons per shared tracer launch when directions are traced together (the tracer's batch).
+GROUP_PHOTONS = 1 << 21
+#: At most this many directions are traced (and held in memory) together.
+GROUP_DIRECTIONS = 64
+
+
+def directions_per_group(settings: BakeSettings) -> int:
+    """Directions traced together: about :data:`GROUP_PHOTONS` photons per shared batch, at
+    most :data:`GROUP_DIRECTIONS`."""
+    return max(1, min(GROUP_DIRECTIONS, GROUP_PHOTONS // settings.photons_per_batch))
 
 
 #: Bake settings for tables baked on demand by a renderer bridge or a material writer: a 6
