@@ -11,6 +11,11 @@ reach the same error if the error falls as N^-1/2 (true for plain; the stratifie
 at least as fast, so the gain at more photons is at least this). The worst direction of a
 fiber sets its figure.
 
+Part ``split`` (splitting at the outer surface, ``--splits`` walks per hit): as ``direction``,
+with plain and split calls interleaved; both wall and CPU time (``time.process_time``: all
+threads of this process) are recorded, and the gain is computed from the CPU time, which a
+machine shared with other work distorts less than the wall time.
+
 Part ``table`` (reciprocity, which needs whole tables): box-filtered bakes of a table, plain
 and with reciprocity averaging, ``--table-photons`` per direction, against a plain box bake
 with 16x the photons; error per direction as above (the table's own bins, p at zero
@@ -80,6 +85,53 @@ def direction_part(args, rec) -> list[dict]:
             row["gain_raw"] = float((a["seconds"] * d2a) / (b["seconds"] * d2b))
             print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['seconds']:.2f} s, "
                   f"stratified {fmt_pct(b['e'])} {b['seconds']:.2f} s, gain {row['gain']:.2f}", flush=True)
+            out.append(row)
+    return out
+
+
+def split_part(args, rec) -> list[dict]:
+    from usdfiber.bake import tracer
+
+    dirs = [tuple(float(x) for x in d.split(",")) for d in args.directions.split(";") if d]
+    ks = [int(k) for k in args.splits.split(",")]
+    w = solid_angles()
+    N, M = 1 << args.split_photons_log2, (1 << args.split_photons_log2) * args.ref_factor
+    out = []
+    for name in args.split_fibers.split(","):
+        case = fiber_case(name)
+        fs = tracer.prepare(case["profile"], case["cuticle"])
+        kw = dict(eta=case["eta"], beta_deg=case["beta_deg"], cuticle=case["cuticle"], max_bounces=4096)
+        for k in [0] + ks:                           # compile every kernel before timing
+            tracer.trace(fs, 0.3, 0.2, 4096, seed=1, split=k, **kw)
+        for j, (th, ph) in enumerate(dirs):
+            t_i, p_i = math.radians(th), math.radians(ph)
+            refs = [_p2(tracer.trace(fs, t_i, p_i, M // 4, seed=30_000 + 10 * j + b, **kw)) for b in range(4)]
+            ref = np.mean(refs, axis=0)
+            e_ref2 = float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+            runs: dict[int, list] = {k: [] for k in [0] + ks}
+            for rep_ in range(args.repeats):
+                for k in runs:
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    r = tracer.trace(fs, t_i, p_i, N, seed=40_000 + 100 * j + 10 * rep_ + k, split=k, **kw)
+                    dt, dc = time.perf_counter() - t0, time.process_time() - c0
+                    d = rel_l2(_p2(r), ref, w)
+                    runs[k].append({"seconds": dt, "cpu": dc, "d": d, "e2": d * d - e_ref2})
+            row = {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
+                   "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+            for k, rs in runs.items():
+                row[f"K{k}"] = {"seconds": float(np.median([x["seconds"] for x in rs])),
+                                "cpu": float(np.median([x["cpu"] for x in rs])),
+                                "e": math.sqrt(max(float(np.mean([x["e2"] for x in rs])), 0.0)), "runs": rs}
+            a = row["K0"]
+            for k in ks:
+                b = row[f"K{k}"]
+                row[f"var_ratio_K{k}"] = a["e"] ** 2 / b["e"] ** 2 if b["e"] > 0 else math.inf
+                row[f"cpu_ratio_K{k}"] = b["cpu"] / a["cpu"]
+                row[f"wall_ratio_K{k}"] = b["seconds"] / a["seconds"]
+                row[f"gain_K{k}"] = row[f"var_ratio_K{k}"] / row[f"cpu_ratio_K{k}"]
+            print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['cpu']:.2f} s cpu; "
+                  + "; ".join(f"K={k} {fmt_pct(row[f'K{k}']['e'])} var x{row[f'var_ratio_K{k}']:.2f} "
+                              f"cpu x{row[f'cpu_ratio_K{k}']:.2f} gain {row[f'gain_K{k}']:.2f}" for k in ks), flush=True)
             out.append(row)
     return out
 
@@ -169,13 +221,17 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--table-fibers", default="polyester,silk,cotton")
     ap.add_argument("--table-photons", type=int, default=16384)
-    ap.add_argument("--parts", default="direction,table")
+    ap.add_argument("--parts", default="direction,table", help="some of direction, split, table")
+    ap.add_argument("--split-fibers", default="polyester,silk,cotton")
+    ap.add_argument("--splits", default="4,8", help="walks per split to measure")
+    ap.add_argument("--split-photons-log2", type=int, default=16)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     if args.quick:
         args.photons_log2, args.repeats, args.table_photons = 14, 1, 1024
         args.directions = "40,25;75,65"
+        args.split_photons_log2, args.splits, args.split_fibers = 12, "4", "polyester"
     rec = Record("estimators", args)
     results = {}
     if "direction" in args.parts:
@@ -186,6 +242,16 @@ def main() -> None:
                   fmt_pct(r["e_ref"]), f"{r['gain']:.2f}", f"{r['gain_raw']:.2f}"] for r in rows]
         print(md_table(["fiber", "theta_i, phi_i", "plain e", "plain s", "stratified e", "stratified s",
                         "ref noise", "gain", "gain (raw d)"], table))
+    if "split" in args.parts:
+        rows = split_part(args, rec)
+        results["split"] = rows
+        ks = [int(k) for k in args.splits.split(",")]
+        print(md_table(["fiber", "theta_i, phi_i", "plain e", "plain cpu s"]
+                       + [f"K={k} {c}" for k in ks for c in ("e", "var ratio", "cpu ratio", "gain")],
+                       [[r["fiber"], f"{r['theta_i']:g}, {r['phi_i']:g}", fmt_pct(r["K0"]["e"]), f"{r['K0']['cpu']:.2f}"]
+                        + [x for k in ks for x in (fmt_pct(r[f"K{k}"]["e"]), f"{r[f'var_ratio_K{k}']:.2f}",
+                                                   f"{r[f'cpu_ratio_K{k}']:.2f}", f"{r[f'gain_K{k}']:.2f}")]
+                        for r in rows]))
     if "table" in args.parts:
         results["table"] = table_part(args, rec)
     rec.doc["results"] = results

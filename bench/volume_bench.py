@@ -1,24 +1,52 @@
 """Volumetric cloth (``render --cloth volume``): voxelization time, grid memory, render time per
-spp and image error against explicit fibers, for the Figure 7 swatch; and the analytic
-voxelization of the 5,000-yarn shirt panel (no fiber expansion).
+spp and image error against explicit fibers (Figure 7 swatch) or the far field (a piece of the
+5,000-yarn shirt panel), next to the explicit and far-field modes; equal-time errors.
 
-    python bench/volume_bench.py swatch [--res 320x120] [--spp 16]     # three modes, one stage
+    python bench/volume_bench.py swatch [--modes 'fibers;far field;volume;volume, 2 voxels/px']
+                                        [--res 160x60] [--spp 2] [--passes 4] [--ref-passes 24]
+                                        [--bricks 0,4,16] [--fine 2] --save IMAGES.npz > RUN.json
+    python bench/volume_bench.py swatch-errors --inputs RUN.json,IMAGES.npz,... [--budgets 10,30,100]
+    python bench/volume_bench.py shirt-render [--yarns 500] [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 16]
+    python bench/volume_bench.py bricks [--res 80x30] [--spp 4] [--rounds 2] [--bricks 8,0]
     python bench/volume_bench.py shirt [--yarns 5000] [--voxel-mm 1.04]
 
-``swatch``: examples/fig7_swatches.usda rendered as explicit fibers (``--lod-scale 0``; the
-reference, at ``--ref-spp``), as the yarn far field (``--lod-scale 0.01``: every yarn below the far-field
-threshold) and as a volume; per mode the translate time, the voxel grids' bytes, the render
-time per spp, the image mean relative to the reference and the RMS error over 4 x 4 pixel
-blocks relative to the reference's mean; then an equal-time run (each mode given the
-volume's render time) with the same errors. Tables: 15 degrees, 5,000 photons (cached in
-``$USDFIBER_CACHE_DIR``).
+Timing: CPU seconds of the rendering process (``time.process_time``: all its threads), which a
+shared machine's load changes far less than wall time; wall times are recorded next to them.
+Every render after the first of a mode reuses its compiled kernels: the seed is an opaque
+Dr.Jit value and every pass has the same spp.
+
+``swatch``: examples/fig7_swatches.usda rendered as explicit fibers (``--lod-scale 0``), as the
+yarn far field (``--lod-scale 0.01``: every yarn below the far-field threshold), as a volume in
+bricks of the default size (:data:`usdfiber.translators.mitsuba.volume.medium.BRICK_VOXELS`),
+in bricks of ``--bricks`` voxels (0: one medium) and with ``--fine`` voxels per pixel footprint
+(the voxel-size dependence of the error). Per mode: translate time (CPU and wall), voxelization
+time, the voxel grids' bytes, a compiling pass (not timed), then ``--passes`` timed passes of
+``--spp`` samples; explicit fibers also render ``--ref-passes`` passes, the reference. Modes
+can run in separate processes (``--modes``, ';'-separated; their CPU times stay their own).
+Tables: 15 degrees, 5,000 photons (cached in ``$USDFIBER_CACHE_DIR``).
+
+``swatch-errors``: the runs' errors against the reference, on 4 x 4 pixel blocks relative to
+the reference's mean (:func:`mode_errors`): the error of n spp is modelled as
+err(n)^2 = bias^2 + noise1^2 / n, noise1 from the spread of the passes, the bias from the
+error of all passes less the noise of both; the equal-time error at a CPU budget T is
+err(T / (CPU s per spp)) (:func:`equal_time`). Also the image mean and the mean per swatch.
+
+``shirt-render``: a piece of bench/cloth_bench.py's shirt panel (Skala 360 plain weave, the
+panel's yarn and spacing; ``--yarns`` warps and as many wefts) at ``--res`` as the yarn far field
+(the reference, at ``--ref-passes``) and as a volume. Explicit fibers do not fit the machine at
+this scale (bench/REPORT.md, "Garment scale").
+
+``bricks``: the speed of bricks: the Figure 7 volume (the 320 x 120 view's 0.0713 mm voxels)
+in bricks of ``--bricks`` voxels and as one medium (0), rendered alternately at a low
+resolution: CPU seconds per spp, the image means against one medium, and the tentative
+collisions per ray length (:func:`usdfiber.translators.mitsuba.volume.medium.collision_ratio`).
 
 ``shirt``: yarns of bench/cloth_bench.py's shirt panel (2,500 x 2,500 Skala 360, 66.5 cm)
 voxelized from the yarn density at the footprint of a 640-pixel view of the whole panel
 (1.04 mm): time, pieces, grid bytes. ``--yarns N`` voxelizes N full-length warps and
 extrapolates linearly to the panel's 5,000 yarns (the cost is per yarn length).
 
-Prints one JSON object.
+Prints one JSON object (progress per mode on stderr).
 """
 from __future__ import annotations
 
@@ -55,7 +83,53 @@ def block_rms(img: np.ndarray, ref: np.ndarray, b: int = 4) -> float:
     return float(np.sqrt(np.mean((blocks(img) - blocks(ref)) ** 2)) / ref.mean())
 
 
+def quarter_means(img: np.ndarray, ref: np.ndarray) -> list[float]:
+    """Image mean relative to the reference per quarter of the width (one swatch each)."""
+    q = img.shape[1] // 4
+    return [float(img[:, k * q:(k + 1) * q].mean() / ref[:, k * q:(k + 1) * q].mean() - 1.0) for k in range(4)]
+
+
+SWATCH_MODES: dict[str, dict[str, Any]] = {
+    "fibers": dict(cloth="fibers", lod_scale=0.0),
+    "far field": dict(cloth="fibers", lod_scale=0.01),
+    "volume": dict(cloth="volume", lod_scale=1.0),
+}
+
+
+def swatch_modes(bricks: list[int], fine: list[float]) -> dict[str, dict[str, Any]]:
+    """The modes of ``swatch``: explicit fibers, far field, the volume (default bricks), the
+    volume at other brick sizes (0: one majorant) and at other voxels per pixel footprint."""
+    modes = dict(SWATCH_MODES)
+    for b in bricks:
+        modes[f"volume, bricks {b}"] = dict(cloth="volume", lod_scale=1.0, volume_brick=b)
+    for v in fine:
+        modes[f"volume, {v:g} voxels/px"] = dict(cloth="volume", lod_scale=1.0, voxels_per_pixel=v)
+    return modes
+
+
+def _opaque_seed(mi: Any, seed: int) -> Any:
+    """The seed as an opaque Dr.Jit value: passes with other seeds reuse the compiled kernel."""
+    import drjit as dr
+
+    return dr.opaque(mi.UInt32, seed)
+
+
+def render_passes(mi: Any, scene: Any, spp: int, passes: int, seed0: int) -> tuple[np.ndarray, list[float], list[float]]:
+    """``passes`` independent renders of ``spp`` samples (seeds seed0, seed0 + 1, ...): the images
+    (passes, h, w, 3) and each pass's CPU seconds (all threads of this process) and wall seconds."""
+    imgs, cpu, wall = [], [], []
+    for k in range(passes):
+        c0, t0 = time.process_time(), time.perf_counter()
+        imgs.append(np.array(mi.render(scene, spp=spp, seed=_opaque_seed(mi, seed0 + k)), np.float64)[..., :3])
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    return np.stack(imgs), cpu, wall
+
+
 def part_swatch(args: argparse.Namespace) -> dict[str, Any]:
+    """One or more modes of the Figure 7 swatch (``--modes``), each: translate, a compiling pass,
+    then ``--passes`` timed passes of ``--spp`` samples; ``fibers`` also renders ``--ref-passes``
+    reference passes. Images go to ``--save`` (.npz) for ``swatch-errors``."""
     import usdfiber  # noqa: F401  (registers the schemas first)
     from pxr import Usd
 
@@ -65,39 +139,169 @@ def part_swatch(args: argparse.Namespace) -> dict[str, Any]:
 
     mi = mitsuba()
     from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.volume.medium import BRICK_VOXELS
 
     stage = Usd.Stage.Open(os.path.join(ROOT, "examples", "fig7_swatches.usda"))
     w, h = (int(v) for v in args.res.split("x"))
     bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
     cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
-    modes = {"fibers": dict(cloth="fibers", lod_scale=0.0), "far field": dict(cloth="fibers", lod_scale=0.01),
-             "volume": dict(cloth="volume", lod_scale=1.0)}
-
-    def render(mode: str, spp: int, seed: int) -> tuple[np.ndarray, dict[str, Any]]:
-        t0 = time.perf_counter()
-        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=1, bake=bake, cache=cache, **modes[mode]))
-        t1 = time.perf_counter()
-        img = np.array(mi.render(tr.scene, spp=spp, seed=seed), np.float64)[..., :3]
-        t2 = time.perf_counter()
-        return img, {"translate_s": t1 - t0, "render_s": t2 - t1, "s_per_spp": (t2 - t1) / spp,
-                     "voxel_bytes": tr.counts.get("voxel_bytes", 0), "voxels": tr.counts.get("voxels_occupied", 0),
-                     "segments": tr.counts.get("fiber_segments", 0)}
-
-    ref, ref_rec = render("fibers", args.ref_spp, 101)
-    out: dict[str, Any] = {"stage": "examples/fig7_swatches.usda", "res": [w, h], "reference": ref_rec,
-                           "reference_spp": args.ref_spp, "modes": {}}
-    for mode in modes:
-        img, rec = render(mode, args.spp, 7)
-        rec.update(spp=args.spp, mean_rel=float(img.mean() / ref.mean() - 1.0), block_rms=block_rms(img, ref))
+    modes = swatch_modes([int(b) for b in args.bricks.split(",") if b], [float(v) for v in args.fine.split(",") if v])
+    chosen = [m.strip() for m in args.modes.split(";")] if args.modes else list(modes)
+    images: dict[str, np.ndarray] = {}
+    out: dict[str, Any] = {"stage": "examples/fig7_swatches.usda", "res": [w, h], "spp_per_pass": args.spp,
+                           "passes": args.passes, "reference_passes": args.ref_passes,
+                           "default_brick": BRICK_VOXELS, "modes": {}}
+    for mode in chosen:
+        c0, t0 = time.process_time(), time.perf_counter()
+        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache, **modes[mode]))
+        c1, t1 = time.process_time(), time.perf_counter()
+        mi.render(tr.scene, spp=args.spp, seed=_opaque_seed(mi, 0))   # kernel compilation, not timed
+        c2, t2 = time.process_time(), time.perf_counter()
+        imgs, cpu, wall = render_passes(mi, tr.scene, args.spp, args.passes, 1)
+        images[mode] = imgs
+        rec = {"translate_s": t1 - t0, "translate_cpu_s": c1 - c0, "compile_pass_s": t2 - t1,
+               "compile_pass_cpu_s": c2 - c1, "pass_cpu_s": cpu, "pass_wall_s": wall,
+               "cpu_s_per_spp": float(np.median(cpu)) / args.spp, "wall_s_per_spp": float(np.median(wall)) / args.spp,
+               "load": os.getloadavg()[0],
+               "counts": {k: v for k, v in tr.counts.items() if k in ("voxel_bytes", "voxels_occupied", "volume_faces",
+                                                                      "voxelize_ms", "fiber_segments", "volumes",
+                                                                      "fiber_curves", "yarn_far_fields")}}
+        if mode == "fibers" and args.ref_passes:
+            ref, rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
+            images["reference"] = ref
+            out["reference_cpu_s"] = float(np.sum(rcpu))
         out["modes"][mode] = rec
-    budget = out["modes"]["volume"]["render_s"]
-    out["equal_time_s"] = budget
-    for mode in modes:
-        spp = max(1, int(budget / out["modes"][mode]["s_per_spp"]))
-        img, rec = render(mode, spp, 11)
-        out["modes"][mode]["equal_time"] = {"spp": spp, "render_s": rec["render_s"],
-                                            "mean_rel": float(img.mean() / ref.mean() - 1.0),
-                                            "block_rms": block_rms(img, ref)}
+        print(mode, json.dumps(rec, default=float), file=sys.stderr, flush=True)
+        del tr
+    if args.save:
+        np.savez_compressed(args.save, **images)
+    return out
+
+
+def block_means(img: np.ndarray, b: int = 4) -> np.ndarray:
+    """Means over b x b pixel blocks and the colour channels (the last two axes are h, w, 3)."""
+    h, w = (img.shape[-3] // b) * b, (img.shape[-2] // b) * b
+    a = img[..., :h, :w, :].mean(axis=-1)
+    return a.reshape(a.shape[:-2] + (h // b, b, w // b, b)).mean(axis=(-3, -1))
+
+
+def mode_errors(passes: np.ndarray, ref_passes: np.ndarray, spp: int, cpu_s_per_spp: float) -> dict[str, Any]:
+    """Error of a mode's passes against the reference's, on 4 x 4 pixel blocks relative to the
+    reference's mean: err(n spp)^2 = bias^2 + noise1^2 / n, with noise1 (the error of one spp)
+    from the spread of the passes (passes - 1 degrees of freedom per block, pooled over every
+    block) and bias^2 the rest of the measured error of all passes, less the reference's own
+    noise (from the spread of its passes)."""
+    ref = ref_passes.mean(axis=0)
+    m = ref.mean()
+    bp, br = block_means(passes), block_means(ref_passes)
+    p, r = len(bp), len(br)
+    noise1_sq = float(np.mean(bp.var(axis=0, ddof=1))) * spp / m**2          # one spp
+    ref_noise_sq = float(np.mean(br.var(axis=0, ddof=1))) / r / m**2        # the reference mean's
+    err_all_sq = float(np.mean((bp.mean(axis=0) - br.mean(axis=0)) ** 2)) / m**2
+    err_one_sq = float(np.mean((bp[0] - br.mean(axis=0)) ** 2)) / m**2
+    bias_sq = err_all_sq - noise1_sq / (p * spp) - ref_noise_sq
+    # err_all_sq averages (Gaussian) squared block errors: its standard error is about
+    # err_all_sq * sqrt(2 / blocks); the noise terms' (from pooled variances) is smaller.
+    bias_sq_se = err_all_sq * float(np.sqrt(2.0 / bp[0].size))
+    img = passes.mean(axis=0)
+    return {"mean_rel": float(img.mean() / m - 1.0),
+            "mean_rel_se": float(np.sqrt(np.var(passes.mean(axis=(1, 2, 3)), ddof=1) / p) / m),
+            "quarter_mean_rel": quarter_means(img, ref),
+            "block_rms_one_pass": float(np.sqrt(err_one_sq)), "block_rms_all_passes": float(np.sqrt(err_all_sq)),
+            "noise_1spp": float(np.sqrt(noise1_sq)), "reference_noise": float(np.sqrt(ref_noise_sq)),
+            "bias": float(np.sqrt(max(bias_sq, 0.0))), "bias_sq": bias_sq, "bias_sq_se": bias_sq_se,
+            "bias_resolved": bool(bias_sq > 2.0 * bias_sq_se),
+            "predicted_one_pass": float(np.sqrt(max(bias_sq, 0.0) + noise1_sq / spp + ref_noise_sq)),
+            "cpu_s_per_spp": cpu_s_per_spp}
+
+
+def equal_time(errors: dict[str, dict[str, Any]], budgets: list[float]) -> dict[str, dict[str, float]]:
+    """err(T) = sqrt(bias^2 + noise1^2 / spp(T)), spp(T) = T / (CPU s per spp), per mode and budget;
+    a bias within two standard errors of 0 counts as 0 (not resolved by the run)."""
+    def bias_sq(e: dict[str, Any]) -> float:
+        return e["bias_sq"] if e["bias_resolved"] else 0.0
+
+    return {f"{t:g}": {mode: float(np.sqrt(bias_sq(e) + e["noise_1spp"] ** 2 * e["cpu_s_per_spp"] / t))
+                       for mode, e in errors.items()} for t in budgets}
+
+
+def part_swatch_errors(args: argparse.Namespace) -> dict[str, Any]:
+    """Combines ``swatch`` runs (``--inputs``: pairs of JSON result and .npz images, comma
+    separated) into the errors against the explicit-fiber reference and the equal-time errors."""
+    files = [f for f in args.inputs.split(",") if f]
+    runs = [(json.load(open(files[i])), np.load(files[i + 1])) for i in range(0, len(files), 2)]
+    ref = next(z["reference"] for _, z in runs if "reference" in z.files)
+    out: dict[str, Any] = {"runs": [f for f in files[::2]], "modes": {}}
+    for res, z in runs:
+        for mode, rec in res["modes"].items():
+            out["modes"][mode] = mode_errors(z[mode], ref, res["spp_per_pass"], rec["cpu_s_per_spp"])
+            out["modes"][mode].update(spp=res["spp_per_pass"] * res["passes"],
+                                      load=res["machine"]["load_average"], res=res["res"])
+    out["equal_time_cpu_s"] = equal_time(out["modes"], [float(t) for t in args.budgets.split(",")])
+    return out
+
+
+def part_bricks(args: argparse.Namespace) -> dict[str, Any]:
+    """The Figure 7 volume in bricks of ``--bricks`` voxels against one medium (brick 0), the same
+    grids (``--voxel-mm``, the 320 x 120 view's footprint), rendered alternately at ``--res``:
+    CPU and wall seconds per spp, the image means (against brick 0, with their standard errors)
+    and, per brick size, the tentative collisions per ray length relative to one majorant."""
+    import usdfiber  # noqa: F401  (registers the schemas first)
+    from pxr import Usd
+
+    from usdfiber.backend import mitsuba
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.settings import BakeSettings
+
+    mi = mitsuba()
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.stage_walk import walk
+    from usdfiber.translators.mitsuba.fibers import fiber_prim
+    from usdfiber.translators.mitsuba.volume.medium import brick_size, collision_ratio
+    from usdfiber.translators.mitsuba.volume.scene import translate_volumes
+    from pxr import UsdGeom
+
+    stage = Usd.Stage.Open(os.path.join(ROOT, "examples", "fig7_swatches.usda"))
+    w, h = (int(v) for v in args.res.split("x"))
+    bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
+    cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
+    sizes = [int(b) for b in args.bricks.split(",")]
+    tc = Usd.TimeCode.Default()
+    pls = [pl for pl in walk(stage, tc, ("default", "render"), (UsdGeom.Gprim,)) if fiber_prim(pl.prim)]
+    vt, _ = translate_volumes(mi, pls, stage, tc, settings=bake, cache=cache, voxel_size=args.voxel_mm, brick_voxels=0)
+    out: dict[str, Any] = {"stage": "examples/fig7_swatches.usda", "res": [w, h], "spp": args.spp,
+                           "voxel_mm": args.voxel_mm, "rounds": args.rounds,
+                           "grids": {p: list(g.shape) for p, g in vt.grids.items()}, "bricks": {}}
+    for b in sizes + [4, 16]:
+        out["bricks"].setdefault(str(b), {})["collision_ratio"] = [
+            collision_ratio(g, brick_size(g, b)) for g in vt.grids.values()]
+    scenes = {}
+    for b in sizes:
+        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=1, bake=bake, cache=cache, cloth="volume",
+                                                 voxel_size=args.voxel_mm, volume_brick=b))
+        t0 = time.perf_counter()
+        mi.render(tr.scene, spp=1, seed=1)           # kernel compilation, not timed
+        scenes[b] = tr.scene
+        out["bricks"][str(b)].update(faces=tr.counts["volume_faces"], compile_s=time.perf_counter() - t0)
+    imgs: dict[int, list[np.ndarray]] = {b: [] for b in sizes}
+    for r in range(args.rounds):
+        for b in sizes:                              # alternated: the machine's load hits both alike
+            c0, t0 = time.process_time(), time.perf_counter()
+            imgs[b].append(np.array(mi.render(scenes[b], spp=args.spp, seed=100 + r), np.float64)[..., :3])
+            rec = out["bricks"][str(b)]
+            rec.setdefault("cpu_s", []).append(time.process_time() - c0)
+            rec.setdefault("wall_s", []).append(time.perf_counter() - t0)
+            rec.setdefault("load", []).append(os.getloadavg()[0])
+    base = np.mean(imgs[sizes[-1]], axis=0) if 0 not in sizes else np.mean(imgs[0], axis=0)
+    for b in sizes:
+        img = np.mean(imgs[b], axis=0)
+        px = img.mean(axis=2).reshape(-1)
+        rec = out["bricks"][str(b)]
+        rec.update(cpu_s_per_spp=float(np.sum(rec["cpu_s"]) / (args.spp * args.rounds)),
+                   wall_s_per_spp=float(np.sum(rec["wall_s"]) / (args.spp * args.rounds)),
+                   mean=float(px.mean()), mean_se=float(px.std(ddof=1) / np.sqrt(len(px))),
+                   mean_rel_to_one_majorant=float(img.mean() / base.mean() - 1.0),
+                   block_rms_to_one_majorant=block_rms(img, base))
     return out
 
 
@@ -160,17 +364,89 @@ def part_shirt(args: argparse.Namespace) -> dict[str, Any]:
             "fiber_count_per_yarn": params.fiber_count}
 
 
+def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
+    """A square piece of the shirt panel (``--yarns`` warps and as many wefts of Skala 360, the
+    panel's yarn and density; bench/cloth_bench.py's stage: grey card, camera 30 degrees from the
+    normal framing it whole) at ``--res``: the yarn far field (``--cloth fibers``, every yarn
+    below a pixel) with ``--ref-passes`` more passes as the reference, and the volume from the
+    yarn density. Per mode: translate and voxelization time, grid bytes, CPU seconds per spp,
+    and the errors of :func:`mode_errors` against the far field."""
+    import usdfiber  # noqa: F401  (registers the schemas first)
+
+    from cloth_bench import build_stage
+    from usdfiber.backend import mitsuba
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.settings import BakeSettings
+
+    mi = mitsuba()
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+
+    w, h = (int(v) for v in args.res.split("x"))
+    spec = {"kind": "weave", "yarn": "Skala 360", "warps": args.yarns, "wefts": args.yarns, "res": [w, h],
+            "cameras": {"whole": 1.0}}
+    c0, t0 = time.process_time(), time.perf_counter()
+    stage, info = build_stage(spec)
+    out: dict[str, Any] = {"spec": spec, "cloth_size_mm": info["cloth_size_mm"], "stage_s": time.perf_counter() - t0,
+                           "stage_cpu_s": time.process_time() - c0, "spp_per_pass": args.spp, "passes": args.passes,
+                           "reference_passes": args.ref_passes, "modes": {}}
+    bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
+    cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
+    images: dict[str, np.ndarray] = {}
+    for mode, kw in (("far field", dict(cloth="fibers", lod_scale=1.0)), ("volume", dict(cloth="volume"))):
+        c0, t0 = time.process_time(), time.perf_counter()
+        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
+                                                 camera="/Cams/whole", **kw))
+        c1, t1 = time.process_time(), time.perf_counter()
+        mi.render(tr.scene, spp=args.spp, seed=_opaque_seed(mi, 0))   # kernel compilation, not timed
+        c2, t2 = time.process_time(), time.perf_counter()
+        imgs, cpu, wall = render_passes(mi, tr.scene, args.spp, args.passes, 1)
+        images[mode] = imgs
+        rec = {"translate_s": t1 - t0, "translate_cpu_s": c1 - c0, "compile_pass_s": t2 - t1,
+               "compile_pass_cpu_s": c2 - c1, "pass_cpu_s": cpu, "pass_wall_s": wall,
+               "cpu_s_per_spp": float(np.median(cpu)) / args.spp, "wall_s_per_spp": float(np.median(wall)) / args.spp,
+               "load": os.getloadavg()[0], "counts": dict(tr.counts), "warnings": list(tr.warnings)[:8]}
+        if mode == "far field":
+            images["reference"], rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
+            out["reference_cpu_s"] = float(np.sum(rcpu))
+        out["modes"][mode] = rec
+        print(mode, json.dumps(rec, default=float), file=sys.stderr, flush=True)
+        del tr
+    for mode, rec in out["modes"].items():
+        rec["errors"] = mode_errors(images[mode], images["reference"], args.spp, rec["cpu_s_per_spp"])
+    if args.save:
+        np.savez_compressed(args.save, **images)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("swatch", "shirt"))
-    ap.add_argument("--res", default="320x120")
-    ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--ref-spp", type=int, default=64)
-    ap.add_argument("--yarns", type=int, default=5000)
-    ap.add_argument("--voxel-mm", type=float, default=665.0 / 640.0)
+    ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render"))
+    ap.add_argument("--res", default=None, help="swatch: 160x60; shirt-render: 160x120; bricks: 80x30")
+    ap.add_argument("--spp", type=int, default=2, help="swatch, shirt-render: samples per pass; bricks: per render")
+    ap.add_argument("--passes", type=int, default=4, help="swatch, shirt-render: timed passes per mode")
+    ap.add_argument("--ref-passes", type=int, default=24, help="swatch: reference passes (explicit fibers)")
+    ap.add_argument("--modes", default="", help="swatch: modes separated by ';' (default: all of them)")
+    ap.add_argument("--bricks", default=None, help="swatch: other brick sizes (default none; 0: one majorant); "
+                                                  "bricks: the sizes to time (default 8,0)")
+    ap.add_argument("--fine", default="2", help="swatch: other voxels per pixel footprint")
+    ap.add_argument("--save", default="", help="swatch, shirt-render: save the images (.npz)")
+    ap.add_argument("--inputs", default="", help="swatch-errors: result.json,images.npz,... of swatch runs")
+    ap.add_argument("--budgets", default="10,30,100", help="swatch-errors: CPU seconds for the equal-time errors")
+    ap.add_argument("--yarns", type=int, default=5000, help="shirt: yarns; shirt-render: warps = wefts of the piece")
+    ap.add_argument("--voxel-mm", type=float, default=None,
+                    help="voxel edge, mm (shirt: 1.04, the 640-pixel view's footprint; "
+                         "bricks: 0.0713, the 320 x 120 one's)")
+    ap.add_argument("--rounds", type=int, default=2, help="bricks: alternated timed renders per brick size")
     args = ap.parse_args(argv)
-    out = {"machine": machine(), "part": args.part}
-    out.update(part_swatch(args) if args.part == "swatch" else part_shirt(args))
+    if args.bricks is None:
+        args.bricks = "8,0" if args.part == "bricks" else ""
+    if args.res is None:
+        args.res = {"bricks": "80x30", "shirt-render": "160x120"}.get(args.part, "160x60")
+    if args.voxel_mm is None:
+        args.voxel_mm = 0.0713 if args.part == "bricks" else 665.0 / 640.0
+    out = {"machine": machine(), "part": args.part, "argv": sys.argv[1:] if argv is None else argv}
+    out.update({"swatch": part_swatch, "swatch-errors": part_swatch_errors, "bricks": part_bricks,
+                "shirt": part_shirt, "shirt-render": part_shirt_render}[args.part](args))
     out["machine"]["load_average_end"] = os.getloadavg()
     json.dump(out, sys.stdout, indent=1, default=float)
     print()

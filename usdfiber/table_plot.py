@@ -10,6 +10,11 @@
   theta_o), one curve per theta_i, log scale, cones marked.
 * :func:`error_against_photons`: a bake's estimated relative L2 error of p per incoming
   direction against its photons, with the ``c / sqrt(N)`` law fitted through them.
+* :func:`fit_comparison`: Figure 12-style slices of the table's scattering against each
+  fitted standard model (:mod:`usdfiber.fit`): per light longitude theta_i (rows), the
+  rotation-averaged ``s = sigma / <W>`` (:class:`usdfiber.fit.FitTarget`) on the specular
+  cone over ``dphi = phi_o - phi_i`` (left) and integrated over ``dphi`` against theta_o
+  (right), luminance, log scale; each model's relative L2 error over the sphere in the legend.
 
 Each returns a matplotlib Figure; :func:`save` writes it (PNG, PDF, SVG by extension).
 Angles are in degrees; absorption ``sigma_a`` per channel in 1/um at the baked size
@@ -23,7 +28,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["error_against_photons", "longitudinal_curves", "save", "scattering_grid"]
+__all__ = ["error_against_photons", "fit_comparison", "longitudinal_curves", "save", "scattering_grid"]
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -149,6 +154,71 @@ def error_against_photons(table: Any) -> Any:
     s = table.summary()
     ax.set_title(f"{_title(table, [0.0])}\nrms error {s['rel_error_rms']:.3g}, "
                  f"{s['photons_total']:.3g} photons in all", fontsize=9)
+    return fig
+
+
+def fit_comparison(tables: Sequence[Any], sigma_a: Sequence[float] = (0.0, 0.0, 0.0), diameter_scale: float = 1.0,
+                   *, theta_i: Sequence[float] = (-60.0, -30.0, 0.0), models: Sequence[str] = ("chiang", "khungurn"),
+                   settings: Any = None) -> Any:
+    """Figure 12-style comparison of ``tables`` (one fiber's cross-section variants) with the
+    standard models fitted to them (module docstring); ``theta_i`` in degrees, each shown at
+    the nearest incoming node. Fits are cached beside the first table's file (``usdfiber.fit``)."""
+    from usdfiber.fit import FitTarget, fit_tables, model_values
+
+    plt = _plt()
+    tables = list(tables)
+    target = FitTarget.from_tables(tables, list(sigma_a), diameter_scale)
+    curves = {"table": target.values}
+    errors = {}
+    for m in models:
+        res = fit_tables(tables, m, sigma_a=list(sigma_a), diameter_scale=diameter_scale, settings=settings)
+        curves[m] = model_values(m, res.params, target, res.settings)
+        errors[m] = float(np.asarray(res.error["rel_l2"]) @ _LUMA) if len(res.error["rel_l2"]) == 3 \
+            else float(np.mean(res.error["rel_l2"]))
+    lum = {k: (v @ _LUMA if v.shape[-1] == 3 else v.mean(axis=-1)) for k, v in curves.items()}
+    nodes = np.degrees(target.theta_i)
+    # Mirror-symmetric tables store theta_i >= 0: s(-theta_i, -theta_o) = s(theta_i, theta_o).
+    mirror = bool(target.mirror) and nodes.min() >= 0.0
+    rows = [(int(np.argmin(np.abs(nodes - (abs(t) if mirror else t)))), mirror and t < 0) for t in theta_i]
+    centres = np.degrees(0.5 * (target.theta_o_edges[1:] + target.theta_o_edges[:-1]))
+    n_phi = target.values.shape[2]
+    dphi = np.degrees(target.dphi_step * np.arange(n_phi))
+    order = np.argsort(np.mod(dphi + 180.0, 360.0))
+    dphi_c = np.mod(dphi + 180.0, 360.0)[order] - 180.0
+    fig, axes = plt.subplots(len(rows), 2, figsize=(9.0, 2.3 * len(rows) + 0.8), squeeze=False,
+                             constrained_layout=True)
+    styles = {"table": dict(color="k", lw=1.8), "chiang": dict(color="#d95f02", lw=1.2, ls="--"),
+              "khungurn": dict(color="#1b9e77", lw=1.2, ls="-.")}
+    for r, (i, flip) in enumerate(rows):
+        ti = -nodes[i] if flip else nodes[i]
+        o = int(np.argmin(np.abs(centres + ti)))                  # the specular cone's bin
+        ax_a, ax_l = axes[r]
+        for k, v in lum.items():
+            vi = v[i][::-1] if flip else v[i]                      # (theta_o, dphi) at theta_i = ti
+            label = k if k == "table" else f"{k} (rel L2 {errors[k]:.2f})"
+            st = styles.get(k, {})
+            ax_a.semilogy(dphi_c, np.maximum(vi[o][order], 1e-9), label=label, **st)
+            m_long = vi.sum(axis=1) * target.dphi_step
+            ax_l.semilogy(centres, np.maximum(m_long, 1e-9), label=label, **st)
+        ax_a.set_xlim(-180, 180)
+        ax_a.set_xticks(range(-180, 181, 90))
+        ax_a.set_ylabel(f"theta_i = {ti:.3g} deg\ns on the cone (1/sr)", fontsize=8)
+        ax_l.set_xlim(-90, 90)
+        ax_l.set_xticks(range(-90, 91, 30))
+        ax_l.axvline(-ti, color="#7fd4ff", lw=0.8, ls=":")
+        ax_l.set_ylabel("int s dphi (1/rad)", fontsize=8)
+        for ax in (ax_a, ax_l):
+            ax.grid(True, alpha=0.3)
+            ax.tick_params(labelsize=7)
+        if r == 0:
+            ax_a.set_title("azimuthal slice, theta_o = -theta_i", fontsize=9)
+            ax_l.set_title("longitudinal (dotted: theta_o = -theta_i)", fontsize=9)
+            ax_a.legend(fontsize=7, loc="best")
+        if r == len(rows) - 1:
+            ax_a.set_xlabel("phi_o - phi_i (deg)", fontsize=8)
+            ax_l.set_xlabel("theta_o (deg)", fontsize=8)
+    fig.suptitle(f"Table against fitted models: {_title(tables[0], sigma_a)}, averaged over rotations"
+                 + (f" and {len(tables)} variants" if len(tables) > 1 else ""), fontsize=9)
     return fig
 
 

@@ -67,3 +67,50 @@ def test_cli_figures(table_file, tmp_path, capsys):
     assert main(["table", "plot", str(table_file), "--figure", "grid", "--theta-i", "100", "--phi-i", "0",
                  "-o", str(grid)]) == 2
     assert "within [-90, 90]" in capsys.readouterr().err
+
+
+def test_fit_figure_shows_the_table_and_each_model(circle_table):
+    """Figure 12-style: per row the table's rotation-averaged scattering on the specular cone
+    and each fitted model's, labelled with the fit's error over the sphere."""
+    from usdfiber.fit import FitTarget, fit_tables
+
+    sigma = [0.05, 0.2, 0.5]
+    fig = table_plot.fit_comparison([circle_table], sigma, theta_i=(-30.0, 0.0))
+    axes = fig.axes
+    assert len(axes) == 4                                   # 2 rows x (azimuthal, longitudinal)
+    target = FitTarget.from_tables([circle_table], sigma)
+    lum = target.values @ np.array([0.2126, 0.7152, 0.0722])
+    i = int(np.argmin(np.abs(np.degrees(target.theta_i) - 0.0)))
+    longitudinal = axes[3].get_lines()
+    labels = [ln.get_label() for ln in longitudinal]
+    assert labels[0] == "table" and labels[1].startswith("chiang (rel L2") and labels[2].startswith("khungurn")
+    # the table's longitudinal curve is the target integrated over dphi
+    np.testing.assert_allclose(longitudinal[0].get_ydata(), np.maximum(lum[i].sum(axis=1) * target.dphi_step, 1e-9))
+    err = fit_tables([circle_table], "chiang", sigma_a=sigma, cache=False).error["rel_l2"]
+    assert f"{float(np.asarray(err) @ [0.2126, 0.7152, 0.0722]):.2f}" in labels[1]
+    # a round fiber's fitted Chiang model follows its table: the longitudinal curves agree
+    # within a factor of 2 wherever the table holds 1 % of its peak or more
+    t, c = longitudinal[0].get_ydata(), longitudinal[1].get_ydata()
+    big = t > 0.01 * t.max()
+    assert np.all(np.abs(np.log(c[big] / t[big])) < math.log(2.0))
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_cli_grid_is_the_default_and_slice_on_request(table_file, tmp_path, capsys):
+    out = tmp_path / "default.png"
+    assert main(["table", "plot", str(table_file), "-o", str(out)]) == 0
+    spec, _ = _png(out)
+    assert spec.width > 600 and spec.height > 300 and "(grid)" in capsys.readouterr().out
+    sl = tmp_path / "slice.png"
+    assert main(["table", "plot", str(table_file), "--figure", "slice", "--theta-i", "-30", "-o", str(sl)]) == 0
+    spec, _ = _png(sl)
+    assert (spec.width, spec.height) == (36 * 4, 18 * 4)     # 10 degree bins, 4 pixels each
+    capsys.readouterr()
+    assert main(["table", "plot", str(table_file), "--figure", "slice", "-o", str(sl)]) == 2
+    assert "--figure slice needs --theta-i" in capsys.readouterr().err
+    fit = tmp_path / "fit.png"
+    assert main(["table", "plot", str(table_file), "--figure", "fit", "--theta-i", "0", "-o", str(fit)]) == 0
+    spec, px = _png(fit)
+    assert spec.width > 600 and px[..., :3].std() > 0.05

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import json
-import math
 import warnings
 
 import numpy as np
@@ -28,8 +27,8 @@ from usdfiber.bake import profiles
 from usdfiber.bake.baker import bake_table
 from usdfiber.bcsdf import BakeSettings, TableCacheWarning
 from usdfiber.fit import ChiangParams, FitCache, FitSettings, KhungurnParams, UnknownModelError, fit_tables
-from usdfiber.fit import chiang, khungurn
 
+from fit_independent import independent_error
 from fit_synthetic import chiang_table, khungurn_table
 
 
@@ -80,46 +79,13 @@ def real_tables(tmp_path_factory):
     return _Tables(tmp_path_factory.mktemp("fits"))
 
 
-def _independent_error(table, model: str, params, sigma_a) -> float:
-    """Relative L2 of the model against the table, through other code paths (module docstring)."""
-    g = table.grid
-    ti = g.theta_i_nodes()
-    to_e = g.theta_o_edges()
-    n_p = g.n_phi_o
-    dphi = g.step * np.arange(n_p)
-    # a fiber rotated by psi sees the light at phi_i - psi: one rotation per table node
-    psis = -g.step * np.arange(g.n_phi_i)
-    phi_i = 0.5 * g.step
-    TI, TO, DP = np.meshgrid(ti, g.theta_o_centers(), dphi, indexing="ij")
-    wbar = float(np.mean(table.width(np.linspace(0, 2 * math.pi, 720, endpoint=False))))
-    tab = np.zeros(TI.shape + (len(sigma_a),))
-    for psi in psis:
-        tab += table.cross_section(TI, phi_i, TO, phi_i + DP, list(sigma_a), psi=psi,
-                                   interp_i="nearest", interp_o="nearest")
-    tab /= len(psis) * wbar
-    k = 8
-    u = (np.arange(k) + 0.5) / k
-    mod = np.zeros_like(tab)
-    for o in range(g.n_theta_o):
-        th = to_e[o] + (to_e[o + 1] - to_e[o]) * u
-        ph = dphi[:, None] + g.step * (u[None, :] - 0.5)
-        A, B, C = np.meshgrid(ti, th, ph.ravel(), indexing="ij")
-        f = (chiang.far_field(params, B, A, C, n_h=64) if model == "chiang" else khungurn.far_field(params, B, A, C))
-        v = f * (np.cos(B) ** 2)[..., None]
-        v = v.reshape(len(ti), k, n_p, k, -1).sum(axis=(1, 3))
-        mod[:, o] = v / (np.cos(th).sum() * k)
-    e = np.diff(np.sin(to_e))
-    w = (np.cos(ti)[:, None] * e[None, :])[..., None, None]
-    return np.sqrt((w * (mod - tab) ** 2).sum(axis=(0, 1, 2)) / (w * tab ** 2).sum(axis=(0, 1, 2)))
-
-
 @pytest.mark.parametrize("name", ["round", pytest.param("silk", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("model", ["chiang", "khungurn"])
 def test_reported_error_matches_independent_evaluation(real_tables, name, model):
     table = real_tables[name]
     sig = (0.5, 1.5, 4.0)
     res = fit_tables([table], model, sigma_a=sig, cache=False)
-    ind = _independent_error(table, model, res.params, sig)
+    ind = independent_error(table, model, res.params, sig)
     rep = np.array(res.error["rel_l2"])
     print(f"\n[fit-recovery] {name} {model}: reported {np.round(rep, 4)}, independent {np.round(ind, 4)}, "
           f"albedo table {np.round(res.error['albedo_table'], 3)} model {np.round(res.error['albedo_model'], 3)}")
@@ -163,3 +129,41 @@ def test_bad_input(real_tables):
         fit_tables([], "chiang", cache=False)
     with pytest.raises(ValueError, match="channels"):
         ChiangParams(sigma_a=(0.1, 0.2), tint_r=(1.0, 1.0, 1.0))
+
+
+@pytest.mark.parametrize("incoming_bins", [1, 3])
+def test_fit_target_of_a_table_with_phi_nodes(incoming_bins):
+    """A round model's table written at every phi_i node (nodes every ``incoming_bins`` bins)
+    gives the fit the same target as its one-node table: each node's columns are shifted by
+    the bin it sits over, not by its index. An even spacing (nodes on bin edges) is refused."""
+    from usdfiber.bake.assembly import assemble
+    from usdfiber.bake.grid import Grid
+    from usdfiber.fit import khungurn
+    from usdfiber.fit.objective import FitTarget
+
+    params = KhungurnParams(beta_r_deg=12.0, beta_tt_deg=20.0, gamma_tt_deg=40.0)
+    res = 5.0
+    one = FitTarget.from_tables([khungurn_table(params, resolution_deg=res)])
+    header = {"geometry_key": "synthetic", "inputs": {}, "photons": {}, "error_estimate": {}, "eta": 1.55,
+              "baked_diameter_um": 1.0, "variant": 0}
+
+    def table_on(grid):
+        stub = FitTarget(np.zeros((grid.n_theta_i, grid.n_theta_o, grid.n_phi_o, 1)), grid.theta_i_nodes(),
+                         grid.theta_o_edges(), grid.step, grid.theta_symmetric, np.zeros((grid.n_theta_i, 1)))
+        mass = (np.maximum(khungurn.grid_values(params, stub, 8)[..., 0], 0.0)
+                * grid.solid_angles()[None, :, None] / np.cos(stub.theta_i)[:, None, None])
+        shift = np.rint((grid.phi_i_nodes() - 0.5 * grid.step) / grid.step).astype(int)
+
+        def load_slice(ti: int, pi: int) -> dict:
+            H = np.roll(mass[ti], shift[pi], axis=1)[None]
+            return {"rows": (0, grid.n_theta_o), "H": H, "G": np.zeros_like(H), "norm": 1.0,
+                    "rel_error": 0.0, "photons": 1}
+        return assemble(grid, (0.0,), (grid.n_theta_i, grid.n_phi_i), load_slice, np.ones(720), header,
+                        band_tail=0.0, storage="float32")
+
+    spacing = None if incoming_bins == 1 else incoming_bins * res
+    many = FitTarget.from_tables([table_on(Grid(res, True, False, incoming_deg=spacing))])
+    fine = one.values[incoming_bins // 2::incoming_bins]     # the fine theta_i nodes the coarse ones sit on
+    np.testing.assert_allclose(many.values, fine, rtol=1e-4, atol=1e-6 * one.values.max())
+    with pytest.raises(ValueError, match="bin centres"):
+        FitTarget.from_tables([table_on(Grid(res, True, False, incoming_deg=2 * res))])

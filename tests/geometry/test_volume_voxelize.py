@@ -192,3 +192,39 @@ def test_count_noise_shortens_the_optical_depth_as_predicted(w_over_d):
     deficit = 1.0 + math.log(expect) / (m * a)
     assert math.isclose(deficit, count_noise_deficit(a), rel_tol=1e-9)
     assert 0.4 * a < deficit < 0.5 * a
+
+
+def test_zero_density_is_an_empty_region():
+    """Pieces that stand for no fibers (count 0: a yarn of zero fibers per ply) leave no length:
+    the same one-line error as an empty region, naming the source."""
+    from usdfiber.geometry.voxelize import FiberPieces, voxelize_pieces
+
+    m = 50
+    rng = np.random.default_rng(2)
+    pieces = FiberPieces(mid=rng.uniform(0, 1, (m, 3)), vec=np.tile([0.01, 0.0, 0.0], (m, 1)), count=np.zeros(m),
+                         diameter=np.full(m, 0.01), slot=np.zeros(m, np.int64), source="/Cloth/Thin")
+    with pytest.raises(VoxelizeError, match="empty region") as exc:
+        voxelize_pieces(pieces, 0.1, n_slots=1)
+    assert "/Cloth/Thin" in str(exc.value) and "\n" not in str(exc.value)
+    with pytest.raises(VoxelizeError, match="counts must be finite and >= 0"):
+        voxelize_pieces(FiberPieces(mid=pieces.mid, vec=pieces.vec, count=np.full(m, -1.0), diameter=pieces.diameter,
+                                    slot=pieces.slot, source="/Cloth/Thin"), 0.1, n_slots=1)
+
+
+@pytest.mark.parametrize("direction", [(0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0)])
+def test_degenerate_axes_fall_back_to_the_reference(direction):
+    """A cross-section axis given along the fiber itself (no rotation can be read from it), and
+    fibers along world y (where the paper's reference, y made perpendicular, vanishes): every
+    occupied voxel still gets a unit axis perpendicular to its direction (the documented
+    fallback: the reference, x for fibers along y)."""
+    fib = parallel_fibers(n_side=4, spacing=0.1, direction=direction)
+    t = np.asarray(direction, float)
+    fib = FiberPolylines(points=fib.points, counts=fib.counts, diameter=fib.diameter, slot=fib.slot,
+                         axis=np.tile(t, (len(fib.counts), 1)), source=fib.source)
+    grid = voxelize_fibers(fib, 0.2, n_slots=1)
+    occ = grid.length > 0
+    ax, d = grid.axis[occ].astype(float), grid.direction[occ].astype(float)
+    assert np.allclose(np.linalg.norm(ax, axis=1), 1.0, atol=1e-5)
+    assert np.allclose(np.abs(d @ t), 1.0, atol=1e-5)
+    assert np.all(np.abs(np.sum(ax * d, axis=1)) < 1e-5)
+    assert np.all(np.isfinite(grid.extinction)) and np.all(np.isfinite(grid.direction))

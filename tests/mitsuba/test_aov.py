@@ -114,3 +114,30 @@ def test_bad_aov_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "unknown AOV(s) motion" in err and "valid: albedo, normal, depth, position" in err
     assert err.count("\n") == 1
+
+
+def test_albedo_aov_is_the_fibers_albedo(tmp_path, table_cache_dir, capsys):
+    """The albedo layer on a dyed fiber is its table's albedo Lambda(omega_v), recoloured,
+    for the viewer's direction (here perpendicular to the fiber: theta_v = 0). Exact up to
+    the renderer's float16 nodes (2^-11 relative) and float32 sums: bound 2e-3."""
+    from pxr import Usd
+
+    from usdfiber.bcsdf import BakeSettings, TableCache, tables_for_prim
+    from usdfiber.spec.fiber import FiberParams
+
+    path = _stage(tmp_path / "alb.usda")
+    out = tmp_path / "alb.exr"
+    assert main(["render", path, "-o", str(out), "--no-png", "--resolution", "40x20", "--spp", "4",
+                 "--no-progress", "--float", "--aov", "albedo", *FAST]) == 0
+    capsys.readouterr()
+    ch = read_exr_channels(out)
+    alb = np.stack([ch["albedo.R"], ch["albedo.G"], ch["albedo.B"]], -1)[8:12].reshape(-1, 3)   # fiber only
+    stage = Usd.Stage.Open(path)
+    prim = stage.GetPrimAtPath("/World/Fiber")
+    params = FiberParams.from_prim(prim)
+    (table,) = tables_for_prim(prim, BakeSettings(resolution_deg=15, photons=4000), bake_missing=False,
+                               cache=TableCache(table_cache_dir))
+    want = table.albedo(0.0, 0.0, list(table.sigma_for(params.mu_a, params.diameter)))
+    print(f"\n[aov] albedo layer {alb.mean(axis=0)}, table {want}")
+    assert want[0] > want[1] + 0.05                     # dyed: the check tells colours apart
+    np.testing.assert_allclose(alb, np.broadcast_to(want, alb.shape), rtol=2e-3)

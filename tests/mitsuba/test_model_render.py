@@ -4,6 +4,11 @@ A row of fibers under a white dome and a key light, seen side-on. The image erro
 fitted model is the relative difference of the mean fiber radiance from the table render's,
 with its Monte-Carlo standard error from the per-pixel differences (pixels are independent:
 each has its own samples; 1200 fiber pixels, so the normal limit holds).
+
+What the fitted model loses on silk does not show in an image mean (a lit silk fiber's mean
+radiance matches its table's within 0.4 %): it is tested over the sphere, against the
+tables' own noise, in ``tests/fit/test_silk_loss.py``; image errors of both fitted models on
+the paper's scenes are measured by ``bench/model_bench.py``.
 """
 from __future__ import annotations
 
@@ -83,7 +88,7 @@ def renders(tmp_path_factory, table_cache_dir):
     os.environ["USDFIBER_CACHE_DIR"] = str(table_cache_dir)
     tmp = tmp_path_factory.mktemp("models")
     out = {}
-    for fiber in ("polyester", "silk"):
+    for fiber in ("polyester",):
         path = _stage(tmp / f"{fiber}.usda", fiber)
         out[fiber] = {m: _render(path, tmp / f"{fiber}_{m}.exr", m) for m in ("table", "chiang", "khungurn")}
     return out
@@ -97,19 +102,6 @@ def test_chiang_matches_table_on_round_polyester(renders):
     assert abs(err) <= CHIANG_ROUND_BOUND + z_limit(FALSE_FAILURE) * se, (err, se)
     # Same coverage: both are opaque round tubes of the same width.
     assert np.abs(r["chiang"][1] - r["table"][1]).max() < 1e-3
-
-
-@pytest.mark.slow
-def test_chiang_misses_silk(renders):
-    """Silk's triangular cross section is what the round-fiber model cannot carry (Aliaga et
-    al. Figures 9, 10): its error is larger than the round fiber's, beyond both noises."""
-    e_round, s_round = _relative_error(*(renders["polyester"][m][0] for m in ("chiang", "table")),
-                                       renders["polyester"]["table"][1])
-    e_silk, s_silk = _relative_error(*(renders["silk"][m][0] for m in ("chiang", "table")),
-                                     renders["silk"]["table"][1])
-    print(f"chiang vs table: polyester {e_round:+.4f} +- {s_round:.4f}, silk {e_silk:+.4f} +- {s_silk:.4f}")
-    # False failure of the comparison: one-sided z limit on the difference (1e-4).
-    assert abs(e_silk) - abs(e_round) > z_limit(FALSE_FAILURE) * math.hypot(s_round, s_silk), (e_round, e_silk)
 
 
 @pytest.mark.slow

@@ -135,7 +135,8 @@ def test_yarn_level_approximation_renders_without_fibers(tmp_path, capsys):
                "--spp", "4", *FAST, *FAST_YARN])
     out = capsys.readouterr().out
     assert rc == 0, out
-    assert "0 fibers expanded of 0 at full detail, 12 drawn with their far field" in out
+    assert "0 fibers expanded of 0 at full detail; with their far field: 12 in view" in out
+    assert "far field /W/Blue: traced" in out
     img = read_exr(tmp_path / "x.exr")[0]
     assert np.isfinite(img).all() and img.max() > 0
 
@@ -254,10 +255,14 @@ def test_frame_selects_transforms_and_depth_of_shade_without_rebaking():
 
 
 def _yarn_stage(cam_z: float):
-    """Two CNe 50 yarns, one in front of a camera at distance cam_z, one far to its side."""
+    """Two CNe 50 yarns, one in front of a camera at distance cam_z, one just beside its view
+    (0.6 mm, 2.5 of its diameters, from the frustum: kept as a far-field proxy, within
+    lod.PROXY_MARGIN_DIAMETERS)."""
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-    for name, x0 in (("Seen", 0.0), ("Aside", 500.0)):
+    # The view is 0.36 cam_z wide each side of the axis at z = 0 (add_camera); the yarn reaches
+    # 1 mm and its radius 0.12 mm from x0.
+    for name, x0 in (("Seen", 0.0), ("Aside", 0.36 * cam_z + 1.0 + 0.12 + 0.6)):
         c = UsdGeom.BasisCurves.Define(stage, f"/Y/{name}")
         c.CreateTypeAttr("cubic")
         c.CreateBasisAttr("bspline")

@@ -123,12 +123,15 @@ def undyed_silk_yarn(silk):
 
 
 def test_white_furnace(undyed_silk_yarn):
-    """Undyed fibers absorb nothing: every photon that scatters leaves the yarn."""
+    """Undyed fibers absorb nothing: every photon that scatters leaves the yarn (the far field
+    recoloured to zero absorption, which is its first traced level)."""
     ff = undyed_silk_yarn
-    np.testing.assert_allclose(ff.arrays["albedo"], 1.0, atol=1e-3)
+    rec = ff.recolour(0.0)
+    np.testing.assert_allclose(rec.albedo, 1.0, atol=1e-3)
+    np.testing.assert_array_equal(rec.albedo[..., 0], ff.arrays["albedo"][..., 0])
     assert ff.header["lost_energy_max"] < 1e-3
     for c in range(3):
-        masses = ff.arrays["p"][:, 0, :, :, c] * np.repeat(ff.grid.solid_angles(), ff.grid.n_phi_o).reshape(
+        masses = rec.p[:, 0, :, :, c] * np.repeat(ff.grid.solid_angles(), ff.grid.n_phi_o).reshape(
             ff.grid.n_theta_o, ff.grid.n_phi_o)
         np.testing.assert_allclose(masses.sum(axis=(1, 2)), 1.0, rtol=1e-5)
 
@@ -154,8 +157,9 @@ def test_dye_darkens_the_yarn_more_than_one_fiber(silk):
     st = YarnBakeSettings(resolution_deg=15, photons=2000, batches=2)
     light = (0.02, 0.2, 0.4)
     deep = tuple(4 * s for s in light)
-    a_light = bake_yarn_far_field(yp, FIBER_D, [FiberSlot(silk, light)], st).arrays["albedo"][:, 0]
-    a_deep = bake_yarn_far_field(yp, FIBER_D, [FiberSlot(silk, deep)], st).arrays["albedo"][:, 0]
+    ff = bake_yarn_far_field(yp, FIBER_D, [FiberSlot(silk, light)], st)   # any colour: recoloured
+    a_light = ff.recolour(list(light)).albedo[:, 0]
+    a_deep = ff.recolour(list(deep)).albedo[:, 0]
     fiber = silk.recolour(list(light)).albedo.mean(axis=(0, 1))
     assert np.all(a_deep < a_light)
     assert np.all(a_light[:, 0] > a_light[:, 1]) and np.all(a_light[:, 1] > a_light[:, 2])
@@ -173,8 +177,10 @@ def test_cache_reuses_and_replaces_damaged_files(tmp_path, silk):
     again, traced = cache.get_or_bake(yp, FIBER_D, slots, st)
     assert not traced
     np.testing.assert_array_equal(again.arrays["p"], ff.arrays["p"])
-    # another colour is another far field
-    assert cache.get_or_bake(yp, FIBER_D, [FiberSlot(silk, (0.2, 0.1, 0.1))], st, bake_missing=False)[0] is None
+    # another colour is the same far field, recoloured; other absorption levels are another one
+    assert cache.get_or_bake(yp, FIBER_D, [FiberSlot(silk, (0.2, 0.1, 0.1))], st, bake_missing=False)[0] is not None
+    other = YarnBakeSettings(resolution_deg=30, photons=400, batches=2, levels=(0.0, 1.0, 4.0))
+    assert cache.get_or_bake(yp, FIBER_D, slots, other, bake_missing=False)[0] is None
     path = next((tmp_path / "yarns").glob("*.npz"))
     path.write_bytes(path.read_bytes()[:200])
     with warnings.catch_warnings(record=True) as rec:

@@ -14,7 +14,8 @@ theta``), over rotations and variants::
 over the tables' incoming nodes (one more ``cos theta`` is the solid angle of a node). It
 is linear Rec.709, the scene's rendering space, as ``primvars:displayColor`` is. A yarn
 prim gets the colour of its fibers: the light its fibers scatter between each other is not
-included (a yarn looks deeper than this).
+included (a yarn looks deeper than this: its own albedo is 0.25-0.58 of its fibers' per
+channel on the Table 3 threads, ``bench/yarn_colour_bench.py``).
 """
 from __future__ import annotations
 

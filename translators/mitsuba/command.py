@@ -159,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(render_summary(args.stage, res), indent=2))
         return 0
+    from usdfiber.bake.cost import format_seconds
+
     t = res.times
     c = res.counts
     w, h = res.resolution
@@ -167,8 +169,15 @@ def run(args: argparse.Namespace) -> int:
           f"{c.get('fiber_tables', 0)} tables, {c.get('fiber_slots', 0)} colours), "
           f"{c.get('meshes', 0)} meshes, {c.get('lights', 0)} lights")
     if c.get("yarn_yarns"):
-        print(f"yarns: {c['yarn_yarns']} ({c['yarn_culled']} outside the view), {c['yarn_fibers']} fibers expanded "
-              f"of {c['yarn_fibers_full']} at full detail, {c.get('yarn_far', 0)} drawn with their far field")
+        print(f"yarns: {c['yarn_yarns']}, {c['yarn_fibers']} fibers expanded of {c['yarn_fibers_full']} at full "
+              f"detail; with their far field: {c.get('yarn_far', 0)} in view, {c.get('yarn_culled', 0)} outside "
+              f"the view near it (proxies); {c.get('yarn_skipped', 0)} far outside the view left out")
+    for f in res.far_fields:
+        took = f" in {f['seconds']:.1f} s" if f["far_field"] == "traced" else ""
+        print(f"far field {f['prim']}: {f['far_field']}{took} ({f['reason']})")
+    for b in res.bakes:
+        print(f"baked {b['label']}: estimated {format_seconds(b['seconds'])}, {b['directions']} directions x "
+              f"{b['photons_per_direction']} photons")
     print(f"time: validate {t['validate']:.2f} s, tables {t['tables']:.2f} s, translate {t['translate']:.2f} s, "
           f"render {t['render']:.2f} s, write {t['write']:.2f} s, total {t['total']:.2f} s")
     for f in res.files:
@@ -210,6 +219,8 @@ def render_summary(stage: str, res: Any) -> dict[str, Any]:
         "stage": stage, "camera": res.camera, "resolution": [w, h], "spp": res.spp,
         "files": [str(f) for f in res.files], "exr_channels": channels, "aovs": list(res.aovs),
         "counts": {k: int(v) for k, v in res.counts.items()},
+        "bakes": list(getattr(res, "bakes", [])),
+        "far_fields": list(getattr(res, "far_fields", [])),
         "times_s": {k: round(float(v), 4) for k, v in res.times.items()},
         "warnings": list(res.warnings),
     }

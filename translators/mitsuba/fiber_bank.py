@@ -32,7 +32,8 @@ steradian is then ``value / (2 pi (pi - s) cos(theta_l))``. Tables of extruded f
 interpolation across ``theta_v = 0`` matches :class:`~usdfiber.bake.table.BcsdfTable`.
 
 Round and non-round tables form two *families* (different parameterizations); tables of
-one family share one resolution (coarser or finer tables are resampled with their own
+one family share one resolution and one incoming node spacing (the ``omega_v`` nodes may be
+coarser than the bins, :mod:`usdfiber.bake.grid`; other tables are resampled with their own
 interpolation).
 """
 from __future__ import annotations
@@ -70,7 +71,8 @@ class Family:
     ``f``: (S, n_tv, n_pv, H, W, 3) float32, ``Lambda p`` per slot and channel;
     ``slot_table``: (S,) the table (index into ``pdf``) of each slot.
     ``theta_v``: the theta_v nodes (radians, increasing); ``phi_v``: the phi_v nodes
-    (one node for round tables; otherwise one turn plus the first node repeated).
+    (one node for round tables; otherwise one turn plus the first node repeated), spaced
+    ``incoming_deg`` (None: ``resolution_deg``, the bin size of the slices).
     """
 
     round: bool
@@ -80,10 +82,17 @@ class Family:
     pdf: np.ndarray
     f: np.ndarray
     slot_table: np.ndarray
+    incoming_deg: float | None = None
 
     @property
     def step(self) -> float:
+        """Bin size of the slices (omega_l), radians."""
         return math.radians(self.resolution_deg)
+
+    @property
+    def incoming_step(self) -> float:
+        """Spacing of the omega_v nodes, radians."""
+        return math.radians(self.resolution_deg if self.incoming_deg is None else self.incoming_deg)
 
     @property
     def theta_span(self) -> float:
@@ -195,17 +204,20 @@ def _native_nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
     return p, alb
 
 
-def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float) -> tuple[np.ndarray, np.ndarray]:
-    """p at the nodes of a grid of bin size ``s`` (radians), with the table's interpolation."""
+def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float, s_in: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """p at the nodes of a grid of bin size ``s`` and omega_v node spacing ``s_in`` (radians,
+    default ``s``), with the table's interpolation."""
+    s_in = s if s_in is None else s_in
     n = int(round(math.pi / s))
-    th_v = -0.5 * math.pi + s * (np.arange(n) + 0.5)
-    th_l = th_v
+    n_in = int(round(math.pi / s_in))
+    th_v = -0.5 * math.pi + s_in * (np.arange(n_in) + 0.5)
+    th_l = -0.5 * math.pi + s * (np.arange(n) + 0.5)
     if fam_round:
         ph_v = np.array([0.0])
         x = np.linspace(0.0, 1.0, 2 * n + 1)
         ph_l = x * _TWO_PI                                  # relative to phi_v = 0
     else:
-        ph_v = 0.5 * s + s * np.arange(2 * n + 1)
+        ph_v = 0.5 * s_in + s_in * np.arange(2 * n_in + 1)
         ph_l = 0.5 * s + np.linspace(0.0, _TWO_PI, 2 * n + 1)
     TV, PV, TL, PL = np.meshgrid(th_v, ph_v, th_l, ph_l, indexing="ij")
     if fam_round:
@@ -250,7 +262,8 @@ class FiberBank:
             res = (resolution_deg or {}).get(fam_round) or min(t.grid.resolution_deg for t in tabs)
             members = [i for i, sl in enumerate(bank.slots) if sl.table.grid.phi_invariant == fam_round]
             bank.families[fam_round] = _build_family(fam_round, float(res), tabs,
-                                                     [bank.slots[i] for i in members])
+                                                     [bank.slots[i] for i in members],
+                                                     _family_incoming(float(res), tabs))
             for k, i in enumerate(members):
                 bank.slot_family[i] = 0 if fam_round else 1
                 bank.slot_index[i] = k
@@ -278,18 +291,32 @@ def _width_row(slot: FiberSlot, n_w: int) -> np.ndarray:
     return np.clip(w, 0.0, 1.0)
 
 
-def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slots: list[FiberSlot]) -> Family:
+def _family_incoming(res_deg: float, tables: list[BcsdfTable]) -> float:
+    """The omega_v node spacing of a family of bin size ``res_deg``: the finest of its
+    tables' incoming spacings when that is a valid one for the family's bins, else the bins'."""
+    d = min(t.grid.incoming_spacing_deg for t in tables)
+    try:
+        return Grid(res_deg, True, False, d).incoming_spacing_deg
+    except ValueError:
+        return res_deg
+
+
+def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slots: list[FiberSlot],
+                  incoming_deg: float | None = None) -> Family:
     s = math.radians(res_deg)
-    Grid(res_deg, True, fam_round)  # validates the resolution
+    grid = Grid(res_deg, True, fam_round, incoming_deg)  # validates the resolution and the spacing
+    s_in = grid.incoming_step
 
     def nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
-        if math.isclose(rec.grid.resolution_deg, res_deg):
+        if (math.isclose(rec.grid.resolution_deg, res_deg)
+                and math.isclose(rec.grid.incoming_spacing_deg, grid.incoming_spacing_deg)):
             return _native_nodes(rec)
-        return _resampled_nodes(rec, fam_round, s)
+        return _resampled_nodes(rec, fam_round, s, s_in)
 
     n_t = int(round(math.pi / s))
-    th_nodes = -0.5 * math.pi + s * (np.arange(n_t) + 0.5)
-    cos_l = np.cos(th_nodes)[None, None, :, None]
+    th_l = -0.5 * math.pi + s * (np.arange(n_t) + 0.5)
+    cos_l = np.cos(th_l)[None, None, :, None]
+    th_nodes = -0.5 * math.pi + s_in * (np.arange(int(round(math.pi / s_in))) + 0.5)
     pdfs = []
     for t in tables:
         p0, _ = nodes(t.recolour(0.0))
@@ -307,6 +334,7 @@ def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slo
         fs.append((d * norm[:, :, None, None, :]).astype(np.float32))
         slot_table.append(next(i for i, t in enumerate(tables) if t is sl.table))
     n_pv = pdfs[0].shape[1]
-    phi_v = np.array([0.0]) if fam_round else 0.5 * s + s * np.arange(n_pv)
+    phi_v = np.array([0.0]) if fam_round else 0.5 * s_in + s_in * np.arange(n_pv)
     return Family(round=fam_round, resolution_deg=res_deg, theta_v=th_nodes, phi_v=phi_v,
-                  pdf=np.stack(pdfs).astype(np.float32), f=np.stack(fs), slot_table=np.array(slot_table, np.int32))
+                  pdf=np.stack(pdfs).astype(np.float32), f=np.stack(fs), slot_table=np.array(slot_table, np.int32),
+                  incoming_deg=grid.incoming_deg)

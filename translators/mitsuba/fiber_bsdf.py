@@ -64,7 +64,7 @@ import numpy as np
 
 from usdfiber.backend import configure_llvm
 
-from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank, FiberSlot
+from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank, FiberSlot, bilinear_integral
 from usdfiber.translators.mitsuba.plugins import VariantPlugin, forwarding_bsdf
 
 configure_llvm()   # Dr.Jit reads the path of its LLVM once, when it is first imported
@@ -97,7 +97,8 @@ class FamilyDevice:
 
     def __init__(self, fam: Family) -> None:
         self.round = fam.round
-        self.s = fam.step
+        self.s = fam.step                   # bin size of the omega_l slices
+        self.s_in = fam.incoming_step       # spacing of the omega_v nodes (a multiple of s)
         self.span = fam.theta_span
         t, n_tv, n_pv, h, w = fam.pdf.shape
         self.n_tv, self.n_pv, self.h, self.w = n_tv, n_pv, h, w
@@ -121,7 +122,7 @@ class FamilyDevice:
     # -- coordinates --------------------------------------------------------------------------
     def _phi_v(self, ph_v: Any) -> Any:
         ph = ph_v - dr.floor(ph_v / (2 * math.pi)) * (2 * math.pi)
-        return dr.select(ph < 0.5 * self.s, ph + 2 * math.pi, ph)
+        return dr.select(ph < 0.5 * self.s_in, ph + 2 * math.pi, ph)
 
     def to_xy(self, th_l: Any, ph_l: Any, ph_v: Any) -> tuple[Any, Any, Any]:
         """(x, y, inside) of a light direction."""
@@ -143,10 +144,10 @@ class FamilyDevice:
     # -- interpolation ------------------------------------------------------------------------
     def _incoming(self, th_v: Any, ph_v: Any) -> tuple[Any, Any, Any, Any]:
         """(kt, tt, kp, tp): the lower theta_v and phi_v nodes and the upper ones' weights."""
-        kt, tt = lerp_nodes(th_v, self.theta0, self.s, self.n_tv)
+        kt, tt = lerp_nodes(th_v, self.theta0, self.s_in, self.n_tv)
         if self.round:
             return kt, tt, mi.UInt32(0), mi.Float(0.0)
-        kp, tp = lerp_nodes(self._phi_v(ph_v), 0.5 * self.s, self.s, self.n_pv)
+        kp, tp = lerp_nodes(self._phi_v(ph_v), 0.5 * self.s_in, self.s_in, self.n_pv)
         return kt, tt, kp, tp
 
     def _cell(self, slot: Any, kt: Any, kp: Any, i: Any, j: Any, active: Any) -> list[list[Any]]:
@@ -305,6 +306,10 @@ class FiberBcsdf:
             raise ValueError("segment slot index out of range")
         self.families = [(FamilyDevice(bank.families[r]) if r in bank.families else None)
                          for r in (True, False)]
+        # Per slot and incoming node: the albedo Lambda RGB, the integral of the slice's
+        # Lambda p interpolant (what eval integrates to), for eval_diffuse_reflectance.
+        self._albedo = [(device_array(mi.Float, _node_albedo(bank.families[r]).reshape(-1))
+                         if r in bank.families else None) for r in (True, False)]
         self._slot_family = device_array(U, bank.slot_family.astype(np.uint32))
         self._slot_index = device_array(U, bank.slot_index.astype(np.uint32))
         self._n_w = int(bank.slot_width.shape[1])
@@ -512,6 +517,31 @@ class FiberBcsdf:
         bs.pdf = dr.select(valid, bs.pdf, 0.0)
         return bs, w
 
+    def eval_diffuse_reflectance(self, si: Any, active: Any = True) -> Any:
+        """The fiber's albedo ``Lambda(omega_v)`` seen from ``si.wi``, recoloured: the
+        integral of :meth:`eval` over all light directions, without the pass-through
+        probability ``q`` (what Mitsuba's ``aov`` integrator writes as ``albedo``).
+        Interpolated between the incoming nodes like :meth:`eval`."""
+        U = mi.UInt32
+        active = active & self.hit_is_finite(si)
+        t, x, y, slot = self.fiber_frame(si, active)
+        th_v, ph_v = self.angles(si.to_world(si.wi), t, x, y)
+        fam_id = dr.gather(U, self._slot_family, slot, active)
+        k = dr.gather(U, self._slot_index, slot, active)
+        out = mi.Color3f(0.0)
+        for fid, fam in enumerate(self.families):
+            if fam is None:
+                continue
+            m = active & (fam_id == fid)
+            kt, tt, kp, tp = fam._incoming(th_v, ph_v)
+            acc = mi.Color3f(0.0)
+            for dt, wt in ((0, 1.0 - tt), (1, tt)):
+                for dp, wp in (((0, 1.0),) if fam.round else ((0, 1.0 - tp), (1, tp))):
+                    node = (k * fam.n_tv + kt + dt) * fam.n_pv + kp + dp
+                    acc += (wt * wp) * dr.gather(mi.Color3f, self._albedo[fid], node, m)
+            out = dr.select(m, acc, out)
+        return out
+
     def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
         """Transmission of a shadow ray through the tube: 0 or 1, 1 with probability 1 - q.
 
@@ -537,6 +567,12 @@ class FiberBcsdf:
         return f"FiberBcsdf[families={[f is not None for f in self.families]}, pass_through={self.pass_through}]"
 
 
+def _node_albedo(fam: Family) -> np.ndarray:
+    """(S, n_tv, n_pv, 3) float32: the integral of each slot's ``Lambda p`` slice over the unit
+    square (the slices are densities in (x, y)), i.e. its albedo at each incoming node."""
+    return bilinear_integral(np.moveaxis(fam.f.astype(np.float64), -1, 3)).astype(np.float32)
+
+
 def _define_plugin(mi: Any) -> type:
     class FiberBcsdfPlugin(forwarding_bsdf(mi)):
         """``usdfiber_bcsdf``: Mitsuba's view of a :class:`FiberBcsdf`."""
@@ -558,6 +594,9 @@ def _define_plugin(mi: Any) -> type:
 
         def eval_null_transmission(self, si: Any, active: Any = True) -> Any:
             return self.fiber.eval_null_transmission(si, active)
+
+        def eval_diffuse_reflectance(self, si: Any, active: Any = True) -> Any:
+            return self.fiber.eval_diffuse_reflectance(si, active)
 
         def to_string(self) -> str:
             return repr(self.fiber)

@@ -42,7 +42,8 @@ from usdfiber.translators.mitsuba.errors import TranslateError
 from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
 from usdfiber.translators.mitsuba.lod import CameraView, LodPolicy
 from usdfiber.translators.mitsuba.profile import TranslationProfile
-from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings, YarnFarField, YarnFarFieldCache
+from usdfiber.translators.mitsuba.yarn_far_field import (YarnBakeSettings, YarnFarField, YarnFarFieldCache,
+                                                         far_field_entry)
 
 __all__ = ["FiberTranslation", "fiber_prim", "pixel_polyline", "translate_fibers", "yarn_polylines"]
 
@@ -65,6 +66,7 @@ class FiberTranslation:
     tables: list[BcsdfTable] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     yarns: dict[str, int] = field(default_factory=dict)   # yarn expansion and LOD counts
+    far_fields: list[dict[str, Any]] = field(default_factory=list)  # per yarn prim: traced, cached or skipped, why
     table_seconds: float = 0.0    # time spent finding, loading and baking tables
 
     @property
@@ -175,13 +177,15 @@ def _plan_yarns(geom: CurveGeometry, yarn: YarnParams, view: CameraView | None, 
     fibers of those to expand (``estimate_expansion``), without making any.
 
     Yarns narrower than ``policy.far_yarn_pixels`` / ``lod_scale`` pixels, yarns outside the
-    view (``culled``: they still cast shadows), and every yarn when ``yarn:expandFibers`` is
-    false are drawn with the yarn's far field instead.
+    view but near it (``culled``: they still cast shadows,
+    :meth:`usdfiber.translators.mitsuba.lod.LodPolicy.out_of_view`), and
+    every yarn when ``yarn:expandFibers`` is false are drawn with the yarn's far field instead;
+    yarns far outside the view are left out (``skipped``).
     """
     expand: list[tuple[int, np.ndarray, float, ExpansionEstimate]] = []
     far_curves: list[int] = []
     far_lines: list[tuple[np.ndarray, float]] = []
-    stats = {"yarns": 0, "culled": 0, "fibers": 0, "fibers_full": 0, "far": 0}
+    stats = {"yarns": 0, "culled": 0, "skipped": 0, "fibers": 0, "fibers_full": 0, "far": 0}
     for k, ss in enumerate(_curve_segments(geom)):
         # Two samples per segment decide visibility and size; only a yarn that is expanded
         # needs the dense centre line (a garment's far yarns would spend minutes on it).
@@ -191,10 +195,14 @@ def _plan_yarns(geom: CurveGeometry, yarn: YarnParams, view: CameraView | None, 
         fraction = 1.0
         if view is not None:
             n_px = view.pixels(2 * r, pts)
-            if not view.visible(pts.min(axis=0) - r, pts.max(axis=0) + r):
-                # Out of view, a yarn still shadows the view and lights it indirectly: it stays
-                # as a far-field proxy, sampled as if seen (leaving it out made a close-up of a
-                # weave 6 % too bright: bench/REPORT.md).
+            where = policy.out_of_view(view, pts.min(axis=0) - r, pts.max(axis=0) + r, 2 * r)
+            if where == "skip":
+                stats["skipped"] += 1
+                continue
+            if where == "proxy":
+                # Out of view, a yarn near it still shadows the view and lights it indirectly: it
+                # stays as a far-field proxy, sampled as if seen (leaving it out made a close-up
+                # of a weave 6 % too bright: bench/REPORT.md).
                 stats["culled"] += 1
                 far_lines.append((pixel_polyline(pts, max(2 * r / n_px, 2 * r)), r))
                 continue
@@ -305,6 +313,7 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     yarn_settings = yarn_settings or YarnBakeSettings()
 
     pending: list[tuple] = []
+    far_report: list[dict[str, Any]] = []
 
     def add_fibers(path: str, params: FiberParams, geom: CurveGeometry, slot_of_variant: np.ndarray,
                    n_variants: int) -> None:
@@ -361,14 +370,19 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
         if yarn is not None:
             plan = profile.call("yarn_lod", _plan_yarns, geom, yarn, view, lod_scale, lod, profile)
             yarn_stats.append(plan.stats)
+            if not plan.far_count and plan.stats["skipped"]:
+                far_report.append(far_field_entry(pl.path, plan.stats, None, False, 0.0))
             if plan.far_count:
                 t0 = _time.perf_counter()
-                ff = _far_field(far_cache, pl.path, yarn, params.diameter * um,
-                                [slots[i] for i in slot_of_variant], yarn_settings, bake_missing, progress)
+                ff, traced = _far_field(far_cache, pl.path, yarn, params.diameter * um,
+                                        [slots[i] for i in slot_of_variant], yarn_settings, bake_missing, progress)
                 table_seconds += _time.perf_counter() - t0
+                far_report.append(far_field_entry(pl.path, plan.stats, ff, traced, _time.perf_counter() - t0))
                 far_geom = _far_yarn_curves(geom, plan, yarn, float(ff.header["piece"]["bound_radius"]), profile)
                 parts.append(far_geom)
-                seg_slot.append(np.full(far_geom.segment_count, slot_id(ff, (0.0, 0.0, 0.0)), np.int64))
+                # The far field is recoloured with its fibers' absorption (one trace per yarn, any dye).
+                seg_slot.append(np.full(far_geom.segment_count,
+                                        slot_id(ff, slots[int(slot_of_variant[0])].sigma_a), np.int64))
                 seg_psi.append(np.zeros(far_geom.segment_count))
             # Expanded after every prim is planned: the memory budget covers all of them.
             pending.append((pl, params, yarn, geom, plan, slot_of_variant, len(tables)))
@@ -395,9 +409,9 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
     return FiberTranslation(geometry=geometry, bank=bank, seg_slot=np.concatenate(seg_slot),
                             seg_psi=np.concatenate(seg_psi), seg_ref=seg_ref,
                             prims=prims, tables=all_tables, warnings=warnings,
-                            table_seconds=table_seconds,
+                            table_seconds=table_seconds, far_fields=far_report,
                             yarns={k: sum(d[k] for d in yarn_stats)
-                                   for k in ("yarns", "culled", "fibers", "fibers_full", "far")})
+                                   for k in ("yarns", "culled", "skipped", "fibers", "fibers_full", "far")})
 
 
 def _budget_scale(plans: list[_YarnPlan], other_segments: int, budget: MemoryBudget, warnings: list[str]) -> float:
@@ -430,8 +444,9 @@ def _budget_scale(plans: list[_YarnPlan], other_segments: int, budget: MemoryBud
 
 def _far_field(far_cache: YarnFarFieldCache, path: str, yarn: YarnParams, fiber_diameter: float,
                slots: list[FiberSlot], settings: YarnBakeSettings, bake_missing: bool,
-               progress: Callable[..., Any] | None) -> YarnFarField:
-    """The far field of a yarn prim, from the cache or traced now (with progress)."""
+               progress: Callable[..., Any] | None) -> tuple[YarnFarField, bool]:
+    """The far field of a yarn prim, from the cache or traced now (with progress), and whether
+    it was traced now."""
     started = False
 
     def prog(done: int, total: int) -> None:
@@ -443,8 +458,9 @@ def _far_field(far_cache: YarnFarFieldCache, path: str, yarn: YarnParams, fiber_
             progress(0, total, {"event": "start", "label": f"yarn far field {path}", "unit": "photon"})
         progress(done, total, {})
 
-    ff, _ = far_cache.get_or_bake(yarn, fiber_diameter, slots, settings, bake_missing=bake_missing, progress=prog)
+    ff, traced = far_cache.get_or_bake(yarn, fiber_diameter, slots, settings, bake_missing=bake_missing,
+                                       progress=prog)
     if ff is None:
         raise TranslateError(f"{path}: the yarn's far field (for yarns too small to show their fibers, or "
                              f"yarn:expandFibers = false) is not cached and baking is off")
-    return ff
+    return ff, traced

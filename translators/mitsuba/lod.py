@@ -5,8 +5,10 @@
 detail"):
 
 * **Culling**: a yarn curve whose bounding box (grown by its radius) misses the camera's
-  view frustum produces no fibers: it stays as a far-field proxy (below), so that it still
-  shadows and lights the view (+0.3 % in the image mean).
+  view frustum produces no fibers. Within :data:`PROXY_MARGIN_DIAMETERS` of its own diameters
+  of the frustum it stays as a far-field proxy (below), so that it still shadows and lights
+  the view (+0.3 % in the image mean on a weave, where dropping them was +6.4 %); farther out
+  it is left out, and its far field is not traced (:meth:`LodPolicy.out_of_view`).
 The numbers of the steps are a :class:`LodPolicy` (carried in the scene options,
 :class:`~usdfiber.translators.mitsuba.scene.SceneOptions` ``lod``); its defaults are the
 measured constants below, and benchmarks try other policies through it.
@@ -39,8 +41,8 @@ from pxr import Gf, Usd, UsdGeom
 
 from usdfiber.translators.mitsuba.camera import DefaultFraming
 
-__all__ = ["CameraView", "FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "LodPolicy", "MIN_FIBER_FRACTION", "WIDEN_EXPONENT",
-           "camera_view", "default_view"]
+__all__ = ["CameraView", "FAR_YARN_PIXELS", "FIBERS_PER_PIXEL", "LodPolicy", "MIN_FIBER_FRACTION",
+           "PROXY_MARGIN_DIAMETERS", "WIDEN_EXPONENT", "camera_view", "default_view"]
 
 #: Fibers kept per pixel of yarn diameter at lod_scale 1 (a pixel resolves about this many
 #: fiber highlights across a yarn).
@@ -63,6 +65,14 @@ MIN_FIBER_FRACTION = 0.5
 #: at 6.3 px); 0.5, the summed cross-section, lost coverage (0.584) and was +11 % too bright at
 #: half the fibers.
 WIDEN_EXPONENT = 1.0
+
+#: A yarn outside the view frustum is kept as a far-field proxy when its box, grown by this many
+#: of its diameters, meets the frustum: the shadow of a yarn lying on a surface reaches its
+#: height over the tangent of the light's elevation, a few diameters, and light it reflects
+#: into the view falls with the square of its distance. Farther yarns are left out (and their
+#: far fields not traced). Measured on the Figure 11 close-up (bench/REPORT.md, "Far fields
+#: only where they contribute").
+PROXY_MARGIN_DIAMETERS = 8.0
 
 
 @dataclass(frozen=True)
@@ -143,12 +153,26 @@ class LodPolicy:
     far_yarn_pixels: float = FAR_YARN_PIXELS         # narrower yarns are drawn with their far field
     min_fiber_fraction: float = MIN_FIBER_FRACTION   # the middle step's floor
     widen_exponent: float = WIDEN_EXPONENT           # kept fibers are widened by fraction ** -exponent
+    proxy_margin_diameters: float = PROXY_MARGIN_DIAMETERS  # out-of-view yarns this near stay as proxies
 
     def __post_init__(self) -> None:
         if not (self.fibers_per_pixel > 0 and self.far_yarn_pixels >= 0 and 0 < self.min_fiber_fraction <= 1
-                and math.isfinite(self.widen_exponent)):
+                and math.isfinite(self.widen_exponent) and self.proxy_margin_diameters >= 0):
             raise ValueError(f"LodPolicy: expected fibers_per_pixel > 0, far_yarn_pixels >= 0, "
-                             f"0 < min_fiber_fraction <= 1 and a finite widen_exponent, got {self}")
+                             f"0 < min_fiber_fraction <= 1, a finite widen_exponent and "
+                             f"proxy_margin_diameters >= 0 (inf keeps every yarn), got {self}")
+
+    def out_of_view(self, view: CameraView, lo: np.ndarray, hi: np.ndarray, diameter: float) -> str:
+        """Where a yarn of bounding box [lo, hi] (grown by its radius) and ``diameter`` stands:
+        ``"visible"`` (its box meets the frustum), ``"proxy"`` (outside, but within
+        ``proxy_margin_diameters`` diameters of it: kept with its far field, for the shadows and
+        light it casts into the view) or ``"skip"`` (left out)."""
+        if view.visible(lo, hi):
+            return "visible"
+        m = self.proxy_margin_diameters * float(diameter)
+        if not math.isfinite(m) or view.visible(np.asarray(lo) - m, np.asarray(hi) + m):
+            return "proxy"
+        return "skip"
 
     def fiber_fraction(self, yarn_pixels: float, fibers: int, *, lod_scale: float = 1.0,
                        min_fibers: int = 8) -> float:

@@ -1,7 +1,9 @@
 """Render a USD stage with Mitsuba 3 and the tabulated fiber BCSDF (:func:`render_stage`).
 
 Steps, each timed: validate the stage (the checks of ``usdfiber check``; errors refuse the
-render), resolve the fiber tables (baking missing ones, with progress), translate
+render), estimate what the missing fiber tables will cost to bake (a probe of each fiber,
+:mod:`usdfiber.bake.cost`; printed before baking starts), resolve the fiber tables (baking
+missing ones, with progress), translate
 (:mod:`usdfiber.translators.mitsuba.scene`), render in passes (progress and time left), write a
 linear EXR with metadata and a display-referred PNG (:mod:`usdfiber.image_output`).
 
@@ -86,6 +88,8 @@ class RenderResult:
     files: list[Path] = field(default_factory=list)
     alpha: np.ndarray | None = None         # (H, W) coverage, 0 where camera rays met nothing
     aovs: dict[str, np.ndarray] = field(default_factory=dict)  # layer -> (H, W, C), scene.AOVS order
+    bakes: list[dict[str, Any]] = field(default_factory=list)  # estimates of the tables baked on demand
+    far_fields: list[dict[str, Any]] = field(default_factory=list)  # yarn far fields: traced, cached, skipped, why
 
 
 def _validate(stage: Any, path: str, frame: float | None, strict: bool) -> list[str]:
@@ -130,6 +134,7 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
             yarn_bake = replace(yarn_bake, photons=int(job.yarn_photons))
     except (BakeError, ValueError) as exc:
         raise RenderRefused(str(exc)) from None
+    bakes = _bake_estimates(stage, job, bake, log) if job.bake_missing else []
     opts = SceneOptions(time=job.frame, resolution=job.resolution, spp=job.spp, camera=job.camera,
                         render_settings=job.render_settings, seed=job.seed, max_depth=job.max_depth,
                         purposes=job.purposes, bake=bake, bake_missing=job.bake_missing,
@@ -206,4 +211,32 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
     times["total"] = time.perf_counter() - t0
     return RenderResult(image=image, alpha=alpha, aovs=layers, times=times, counts=tr.counts, warnings=warnings,
                         camera=tr.camera,
-                        spp=spp, resolution=tr.resolution, files=files)
+                        spp=spp, resolution=tr.resolution, files=files, bakes=bakes,
+                        far_fields=list(tr.fibers.far_fields) if tr.fibers is not None else [])
+
+
+def _bake_estimates(stage: Any, job: RenderJob, bake: Any, log: TextIO) -> list[dict[str, Any]]:
+    """The estimated cost of each fiber table the render will bake (none serves it in the
+    cache), printed on ``log`` before any is baked; [] when the stage's fibers cannot be read
+    (the translation reports why)."""
+    from pxr import Usd
+
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.cost import estimate_request, format_seconds, total
+    from usdfiber.bake.requests import tables_for_stage
+    from usdfiber.memory_budget import format_bytes
+
+    cache = TableCache()
+    try:
+        reqs = tables_for_stage(stage, Usd.TimeCode(job.frame) if job.frame is not None else None)
+        missing = [r for r in reqs if cache.find_serving(r, bake) is None]
+        estimates = [estimate_request(r, bake, cache) for r in missing]
+    except (BakeError, ValueError):
+        return []
+    for e in estimates:
+        print(f"tables: to bake {e.label}: {e.describe()}", file=log)
+    if len(estimates) > 1:
+        t = total(estimates)
+        print(f"tables: {t['tables']} to bake, about {format_seconds(t['seconds'])} on this machine, "
+              f"{format_bytes(t['disk_bytes'])} on disk", file=log)
+    return [e.to_json() for e in estimates]

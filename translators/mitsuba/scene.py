@@ -117,6 +117,7 @@ class SceneOptions:
     cloth: str = "fibers"                       # fibers | volume | auto (volume/scene.py)
     voxels_per_pixel: float = 1.0               # volumes: voxels per pixel footprint
     voxel_size: float | None = None             # volumes: voxel edge (scene units), overrides the footprint
+    volume_brick: int = 8                       # volumes: voxels per brick side (volume/medium.py); 0: one medium
     memory_budget: MemoryBudget | None = None   # yarn expansion's budget; None: MemoryBudget.resolve()
     alpha: bool = False                         # film with an alpha channel (R, G, B, A)
     aovs: tuple[str, ...] = ()                  # AOV layers (AOVS), after R, G, B(, A)
@@ -236,7 +237,8 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         if vol_placements:
             volumes, kept = translate_volumes(mi, vol_placements, stage, tc, settings=opt.bake, cache=opt.cache,
                                               bake_missing=opt.bake_missing, progress=progress, view=view,
-                                              voxels_per_pixel=opt.voxels_per_pixel, voxel_size=opt.voxel_size)
+                                              voxels_per_pixel=opt.voxels_per_pixel, voxel_size=opt.voxel_size,
+                                              brick_voxels=opt.volume_brick)
             fiber_placements = fiber_placements + kept
             entries.update(volumes.entries)
             warnings.extend(volumes.warnings)

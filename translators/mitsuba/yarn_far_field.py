@@ -33,6 +33,17 @@ steradian) where it leaves. Unlike an extruded fiber's ``W(phi)``, the coverage 
 theta (grazing rays cross more of the yarn): the renderer's pass-through uses it as the
 probability that a ray meeting the yarn's tube interacts.
 
+Colour: traced once, recoloured per dye (as a fiber table is, :mod:`usdfiber.bake.absorption`).
+Every fiber of a yarn carries the yarn's dye, so the far field is a function of one optical
+depth per colour channel, ``s = sigma_a D`` of its fibers. Fiber scattering is sampled from the
+fiber tables' undyed densities whatever the colour (:mod:`.fiber_bank`), so a photon's path does
+not depend on ``s``; only its weight does, the product over its fiber interactions of each
+table's ``Lambda_s p_s / p_0``. One trace therefore carries the weights at all the absorption
+levels ``YarnBakeSettings.levels`` at once (one fiber BSDF per three levels, all drawing the
+same direction from the same random numbers), and :meth:`YarnFarField.recolour` interpolates
+``log F`` of each bin between the levels (cubic Hermite with slopes from the neighbouring
+levels) for any colour: a dye change costs milliseconds, not a trace.
+
 Approximations, on purpose: the yarn is straight and infinitely long at the scale of its
 far field (curvature and neighbours are left to the renderer's path tracing between yarn
 curves); the periodic wrap joins the two ends of the piece, which need not match exactly.
@@ -43,22 +54,27 @@ import hashlib
 import json
 import math
 import time as _time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from usdfiber import table_format
+from usdfiber.bake.absorption import DEFAULT_LEVELS, hermite_log_interp, level_bracket
 from usdfiber.bake.cache import load_or_make
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.table import Recoloured
 
-__all__ = ["YarnBakeSettings", "YarnFarField", "YarnFarFieldCache", "bake_yarn_far_field",
-           "trace_far_field", "yarn_piece"]
+__all__ = ["YARN_LEVELS", "YarnBakeSettings", "YarnFarField", "YarnFarFieldCache", "bake_yarn_far_field",
+           "far_field_entry", "trace_far_field", "yarn_piece"]
 
 FORMAT_KIND = "usdfiber-yarn-far-field"
-FORMAT_VERSION = 1
+#: 2: traced at absorption levels and recoloured (1 held one traced colour).
+FORMAT_VERSION = 2
+#: Optical depths across a fiber (``sigma_a D``) at which far fields are traced: the fiber
+#: tables' levels and one more, twelve, so that four RGB fiber BSDFs carry them.
+YARN_LEVELS: tuple[float, ...] = DEFAULT_LEVELS + (128.0,)
 _TWO_PI = 2.0 * math.pi
 _MAX_WRAPS = 64
 
@@ -71,7 +87,8 @@ class YarnBakeSettings:
     ``batches``: independent batches for the error estimate; ``max_bounces``: fiber
     interactions after which a photon is dropped (its energy is reported as lost);
     ``length_diameters``: the periodic piece's length in bounding diameters (rounded up to a
-    whole number of ply twists); ``samples_per_turn``: of the yarn expansion; ``seed``.
+    whole number of ply twists); ``samples_per_turn``: of the yarn expansion; ``seed``;
+    ``levels``: the fibers' optical depths traced (start at 0, increase, a multiple of three).
     """
 
     resolution_deg: float = 6.0
@@ -81,6 +98,7 @@ class YarnBakeSettings:
     length_diameters: float = 6.0
     samples_per_turn: int = 12
     seed: int = 1
+    levels: tuple[float, ...] = YARN_LEVELS
 
     def __post_init__(self) -> None:
         Grid(self.resolution_deg, False, True)
@@ -88,6 +106,11 @@ class YarnBakeSettings:
             raise ValueError("yarn bake needs batches >= 2 and photons >= batches")
         if self.max_bounces < 1 or self.length_diameters <= 0 or self.samples_per_turn < 3:
             raise ValueError("yarn bake: max_bounces >= 1, length_diameters > 0, samples_per_turn >= 3")
+        lv = tuple(float(x) for x in self.levels)
+        if (not lv or lv[0] != 0.0 or len(lv) % 3 or any(b <= a for a, b in zip(lv, lv[1:]))
+                or not all(map(math.isfinite, lv))):
+            raise ValueError(f"yarn bake: levels must start at 0, increase and come in threes, got {list(lv)}")
+        object.__setattr__(self, "levels", lv)
 
 
 @dataclass
@@ -96,14 +119,16 @@ class YarnFarField:
 
     Duck-types the parts of :class:`usdfiber.bake.table.BcsdfTable` the renderer's
     :class:`~usdfiber.translators.mitsuba.fiber_bank.FiberBank` reads (``grid``, ``band_start``,
-    ``arrays["width"]``, ``baked_diameter_um``, ``recolour``); its colour is traced in, so
-    :meth:`recolour` ignores the absorption it is given. Arrays:
+    ``arrays["width"]``, ``baked_diameter_um``, ``recolour``). Arrays:
 
-    ``p`` (n_ti, 1, n_to, n_po, 3) float32 per steradian, each channel's slice integrating to
-    1; ``albedo`` (n_ti, 1, 3); ``coverage`` (n_ti,) at the theta_i nodes; ``width`` (1,) = 1
+    ``p`` (n_ti, 1, n_to, n_po, C) float32 per steradian, each channel's slice integrating to
+    1; ``albedo`` (n_ti, 1, C); ``levels`` (C,), when present: channel k was traced with the
+    fibers at optical depth ``levels[k]`` and :meth:`recolour` interpolates between them
+    (without it the C = 3 channels are one traced colour, which :meth:`recolour` returns
+    whatever it is given); ``coverage`` (n_ti,) at the theta_i nodes; ``width`` (1,) = 1
     (W / D is 1: the transparency is ``coverage``); ``rel_error`` (n_ti, 1) relative L2 error
-    of p (channel mean) from independent batches; ``photons`` (n_ti, 1); ``lost`` (n_ti,)
-    fraction of the scattered energy dropped at ``max_bounces``.
+    of p (of the first level, or the channel mean) from independent batches; ``photons``
+    (n_ti, 1); ``lost`` (n_ti,) fraction of the scattered energy dropped at ``max_bounces``.
     """
 
     header: dict[str, Any]
@@ -112,12 +137,15 @@ class YarnFarField:
     _rec: Recoloured | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        self.grid = Grid(float(self.header["resolution"]["deg"]), False, True)
+        res = self.header["resolution"]
+        # The incoming (theta_i) nodes may be coarser than the bins (usdfiber.bake.grid).
+        self.grid = Grid(float(res["deg"]), False, True, res.get("incoming_deg"))
         g = self.grid
         p = self.arrays["p"]
-        if p.shape != (g.n_theta_i, 1, g.n_theta_o, g.n_phi_o, 3):
+        C = len(self.arrays["levels"]) if "levels" in self.arrays else 3
+        if p.shape != (g.n_theta_i, 1, g.n_theta_o, g.n_phi_o, C):
             raise table_format.TableError(self.path or "yarn far field", f"array p has shape {p.shape}")
-        for name, shape in (("albedo", (g.n_theta_i, 1, 3)), ("coverage", (g.n_theta_i,))):
+        for name, shape in (("albedo", (g.n_theta_i, 1, C)), ("coverage", (g.n_theta_i,))):
             if self.arrays[name].shape != shape:
                 raise table_format.TableError(self.path or "yarn far field",
                                               f"array {name} has shape {self.arrays[name].shape}")
@@ -135,12 +163,46 @@ class YarnFarField:
         """coverage(theta) (radians), linear between the theta_i nodes, constant beyond."""
         return np.interp(np.asarray(theta, np.float64), self.grid.theta_i_nodes(), self.coverage)
 
+    @property
+    def recolourable(self) -> bool:
+        """Whether the far field was traced at absorption levels (any colour), or in one colour."""
+        return "levels" in self.arrays
+
     def recolour(self, sigma_a_rgb_per_um: Any = 0.0, diameter_scale: float = 1.0) -> Recoloured:
-        """The traced colour (the argument is ignored: the fibers' colour is traced in)."""
-        if self._rec is None:
-            self._rec = Recoloured(self, np.zeros(3), self.arrays["p"].astype(np.float32),  # type: ignore[arg-type]
-                                   self.arrays["albedo"].astype(np.float32))
-        return self._rec
+        """The far field with the yarn's fibers at optical depth ``sigma_a * diameter_scale``
+        per channel (a number or RGB; the fiber tables' effective absorption, 1/um at their
+        baked size of 1 um): interpolated between the traced levels. A far field traced in one
+        colour returns that colour whatever it is given."""
+        if not self.recolourable:
+            if self._rec is None:
+                self._rec = Recoloured(self, np.zeros(3), self.arrays["p"].astype(np.float32),  # type: ignore[arg-type]
+                                       self.arrays["albedo"].astype(np.float32))
+            return self._rec
+        s = np.broadcast_to(np.asarray(sigma_a_rgb_per_um, np.float64) * float(diameter_scale), (3,))
+        cache = self.__dict__.setdefault("_colours", {})
+        key = tuple(float(x) for x in s)
+        if key not in cache:
+            p, albedo = zip(*(self._channel(x) for x in key))
+            cache[key] = Recoloured(self, np.array(key), np.stack(p, -1).astype(np.float32),  # type: ignore[arg-type]
+                                    np.stack(albedo, -1).astype(np.float32))
+        return cache[key]
+
+    def _channel(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(p (n_ti, 1, n_to, n_po), albedo (n_ti, 1)) at optical depth ``s``: each bin's mass
+        ``F = albedo p domega`` and the albedo interpolated in ``log`` between the levels
+        around ``s`` (:func:`usdfiber.bake.absorption.hermite_log_interp`, the tangent beyond
+        the last), with slopes ``d log F / ds`` from the neighbouring levels."""
+        lv = np.asarray(self.arrays["levels"], np.float64)
+        dom = self.grid.solid_angles()[None, None, :, None]
+        albedo = np.moveaxis(self.arrays["albedo"].astype(np.float64), -1, 0)          # (K, n_ti, 1)
+        F = np.moveaxis(self.arrays["p"].astype(np.float64), -1, 0) * dom * albedo[..., None, None]
+        k = level_bracket(lv, s)
+        ks = [k] if k == len(lv) - 1 or s == lv[k] else [k, k + 1]
+        f = [hermite_log_interp(lv, s, *_level_pair(lv, a, ks), k) for a in (F, albedo)]
+        mass = f[0]
+        tot = mass.sum(axis=(-2, -1), keepdims=True)
+        p = np.where(tot > 0, mass / np.where(tot > 0, tot, 1.0), 0.0) / dom
+        return p, f[1]
 
     def domega_band(self) -> np.ndarray:
         g = self.grid
@@ -156,6 +218,36 @@ class YarnFarField:
         if header.get("kind") != FORMAT_KIND or header.get("kind_version") != FORMAT_VERSION:
             raise table_format.TableError(path, f"not a yarn far field of version {FORMAT_VERSION}")
         return cls(header, arrays, str(path))
+
+
+def _log_slope(lv: np.ndarray, v: np.ndarray, k: int) -> np.ndarray:
+    """``-d log v / ds`` at level ``k`` (``v``: (K, ...) values at the levels): the three-point
+    derivative of ``log v`` on the uneven levels where both neighbours hold light, one-sided at
+    the ends or beside an empty level, 0 where level ``k`` is empty; never negative (``log F``
+    of a bin decreases with the absorption)."""
+    def log(x: np.ndarray) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(x > 0, np.log(np.where(x > 0, x, 1.0)), np.nan)
+
+    y = log(v[k])
+    lo = (y - log(v[k - 1])) / (lv[k] - lv[k - 1]) if k > 0 else np.full_like(y, np.nan)
+    hi = (log(v[k + 1]) - y) / (lv[k + 1] - lv[k]) if k + 1 < len(lv) else np.full_like(y, np.nan)
+    if 0 < k < len(lv) - 1:
+        hm, hp = lv[k] - lv[k - 1], lv[k + 1] - lv[k]
+        both = (hm * hi + hp * lo) / (hm + hp)
+    else:
+        both = np.full_like(y, np.nan)
+    d = np.where(np.isfinite(both), both, np.where(np.isfinite(lo), lo, np.where(np.isfinite(hi), hi, 0.0)))
+    return np.maximum(-d, 0.0)
+
+
+def _level_pair(lv: np.ndarray, v: np.ndarray, ks: list[int]) -> tuple:
+    """(value, slope) at level ``ks[0]`` and, with two levels, at ``ks[1]`` (else None, None):
+    the arguments :func:`usdfiber.bake.absorption.hermite_log_interp` takes."""
+    out: list[Any] = []
+    for k in ks:
+        out += [v[k], _log_slope(lv, v, k)]
+    return tuple(out + [None, None] * (2 - len(ks)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,21 +309,33 @@ def _cylinder_exit(ox, oy, dx, dy):
 
 def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
                     progress: Callable[[int, int], None] | None = None,
-                    header: dict[str, Any] | None = None) -> YarnFarField:
+                    header: dict[str, Any] | None = None,
+                    levels: Sequence[float] | None = None) -> YarnFarField:
     """Trace ``settings.photons`` photons per theta_i node through ``piece`` whose fibers
     scatter with ``bsdf`` (a :func:`~usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf` for the
-    piece's segments) and tabulate the far field (module docstring)."""
+    piece's segments) and tabulate the far field (module docstring).
+
+    ``bsdf`` may be a list of such BSDFs over tables with the same sampling densities (the
+    same tables in other colours): the first draws every direction, each gives the weights
+    of its three channels for the same random numbers, so the far field has three channels
+    per BSDF, one path for all. ``levels`` names the optical depth of each channel (a far
+    field :meth:`YarnFarField.recolour` interpolates); without it the channels are one
+    colour."""
     from usdfiber.backend import mitsuba
     from usdfiber.translators.mitsuba.curves import make_curve_shape
 
     mi = mitsuba()
     import drjit as dr
 
+    bsdfs = list(bsdf) if isinstance(bsdf, (list, tuple)) else [bsdf]
+    C = 3 * len(bsdfs)
+    if levels is not None and len(levels) != C:
+        raise ValueError(f"{len(levels)} levels for {C} traced channels")
     g = Grid(settings.resolution_deg, False, True)
     n_ti, n_to, n_po = g.n_theta_i, g.n_theta_o, g.n_phi_o
     step = g.step
     th_nodes = g.theta_i_nodes()
-    shape = make_curve_shape(piece.geometry, bsdf, "yarn_piece")
+    shape = make_curve_shape(piece.geometry, bsdfs[0], "yarn_piece")
     scene = mi.load_dict({"type": "scene", "yarn": shape})
     ctx = mi.BSDFContext()
     rng = np.random.default_rng(settings.seed)
@@ -239,9 +343,9 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
     B = settings.batches
     per_batch = -(-settings.photons // B)
     n_bins = n_ti * n_to * n_po
-    hist = np.zeros((B, 3, n_bins))
+    hist = np.zeros((B, C, n_bins))
     scattered = np.zeros((B, n_ti))
-    lost = np.zeros((B, n_ti, 3))
+    lost = np.zeros((B, n_ti, C))
     launched = np.zeros((B, n_ti))
     lanes = 1 << 18
     total = B * n_ti * per_batch
@@ -259,7 +363,7 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
             h = np.sqrt(np.maximum(1.0 - u * u, 0.0))
             o = np.stack([-u * sp + h * cp, u * cp + h * sp, rng.uniform(0.0, lz, n)], axis=1)
             d = -np.stack([np.cos(th) * cp, np.cos(th) * sp, np.sin(th)], axis=1)
-            thr = np.ones((n, 3))
+            thr = np.ones((n, C))
             hit_once = np.zeros(n, bool)
             bounces = np.zeros(n, np.int64)
             wraps = np.zeros(n, np.int64)
@@ -291,19 +395,22 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
                     row = np.clip(np.floor((tho + 0.5 * math.pi) / step).astype(np.int64), 0, n_to - 1)
                     col = np.floor(dphi / step).astype(np.int64) % n_po
                     flat = ti[rec] * (n_to * n_po) + row * n_po + col
-                    for c in range(3):
+                    for c in range(C):
                         hist[b, c] += np.bincount(flat, weights=thr[rec, c], minlength=n_bins)
                 dead = np.zeros(n, bool)
                 if np.any(valid):
                     u1 = mi.Float(rng.random(n).astype(np.float32))
                     u2 = mi.Point2f(mi.Float(rng.random(n).astype(np.float32)),
                                     mi.Float(rng.random(n).astype(np.float32)))
-                    bs, w = bsdf.sample(ctx, si, u1, u2, mi.Bool(valid))
+                    bs, w = bsdfs[0].sample(ctx, si, u1, u2, mi.Bool(valid))
+                    # The other colours' weights of the same direction (same numbers, same
+                    # sampling density): one path carries every channel.
+                    ws = [w] + [other.sample(ctx, si, u1, u2, mi.Bool(valid))[1] for other in bsdfs[1:]]
                     wo = si.to_world(bs.wo)
-                    dr.eval(bs, w, wo)   # one kernel, not one per converted component
+                    dr.eval(bs, ws, wo)   # one kernel, not one per converted component
                     null = np.array(bs.sampled_type, np.uint32) == int(mi.BSDFFlags.Null)
                     ok = valid & (np.array(bs.pdf) > 0)
-                    wv = np.stack([np.array(w[k], np.float64) for k in range(3)], axis=1)
+                    wv = np.stack([np.array(wk[k], np.float64) for wk in ws for k in range(3)], axis=1)
                     won = np.stack([np.array(wo[k], np.float64) for k in range(3)], axis=1)
                     pn = np.stack([np.array(si.p[k], np.float64) for k in range(3)], axis=1)
                     thr[ok] *= wv[ok]
@@ -336,31 +443,33 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
             done += len(ti_all[start:start + lanes])
             if progress is not None:
                 progress(done, total)
-    return _assemble(g, hist, scattered, launched, lost, settings, header or {})
+    return _assemble(g, hist, scattered, launched, lost, settings, header or {}, levels)
 
 
 def _assemble(g: Grid, hist: np.ndarray, scattered: np.ndarray, launched: np.ndarray, lost: np.ndarray,
-              settings: YarnBakeSettings, header: dict[str, Any]) -> YarnFarField:
-    """The table from per-batch histograms ``hist`` (B, 3, n_ti * n_to * n_po)."""
+              settings: YarnBakeSettings, header: dict[str, Any],
+              levels: Sequence[float] | None = None) -> YarnFarField:
+    """The table from per-batch histograms ``hist`` (B, C, n_ti * n_to * n_po)."""
     n_ti, n_to, n_po = g.n_theta_i, g.n_theta_o, g.n_phi_o
     dom = np.repeat(g.solid_angles(), n_po)                            # per bin of a slice
-    B = hist.shape[0]
-    Hb = hist.reshape(B, 3, n_ti, n_to * n_po)
-    H = Hb.sum(axis=0)                                                 # (3, n_ti, bins)
+    B, C = hist.shape[:2]
+    Hb = hist.reshape(B, C, n_ti, n_to * n_po)
+    H = Hb.sum(axis=0)                                                 # (C, n_ti, bins)
     S = scattered.sum(axis=0)                                          # photons that scattered
     N = launched.sum(axis=0)
     L = lost.sum(axis=0)                                               # (n_ti, 3)
-    tot = H.sum(axis=-1)                                               # (3, n_ti) throughput out
+    tot = H.sum(axis=-1)                                               # (C, n_ti) throughput out
 
     def ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.where(b > 0, a / np.where(b > 0, b, 1.0), 0.0)
 
     p = ratio(H, tot[..., None]) / dom                                  # per steradian
-    albedo = ratio(tot, S[None, :])                                    # (3, n_ti)
+    albedo = ratio(tot, S[None, :])                                    # (C, n_ti)
     coverage = ratio(S, N)
     lost_frac = ratio(L.mean(axis=1), tot.mean(axis=0) + L.mean(axis=1))
-    # Relative L2 error of p (channel mean) from the spread of the independent batches.
-    hm = Hb.mean(axis=1)                                               # (B, n_ti, bins)
+    # Relative L2 error of p (channel mean, or the first level) from the spread of the
+    # independent batches.
+    hm = Hb.mean(axis=1) if levels is None else Hb[:, 0]               # (B, n_ti, bins)
     pb = ratio(hm, hm.sum(axis=-1, keepdims=True)) / dom
     pm = pb.mean(axis=0)
     var = ((pb - pm) ** 2).sum(axis=0) / ((B - 1) * B)
@@ -369,9 +478,10 @@ def _assemble(g: Grid, hist: np.ndarray, scattered: np.ndarray, launched: np.nda
     hdr.update({
         "kind": FORMAT_KIND, "kind_version": FORMAT_VERSION,
         "resolution": {"deg": g.resolution_deg, "theta_i": n_ti, "theta_o": n_to, "phi_o": n_po,
-                       "rotationally_symmetric": True, "theta_symmetric": False},
+                       "rotationally_symmetric": True, "theta_symmetric": False,
+                       **({} if g.incoming_deg is None else {"incoming_deg": g.incoming_deg})},
         "photons": int(N.max()),
-        "error_estimate": {"metric": "relative L2 of p per theta_i (channel mean), from independent batches",
+        "error_estimate": {"metric": "relative L2 of p per theta_i (channel mean, or the first level), from independent batches",
                            "max": float(np.max(rel)), "median": float(np.median(rel))},
         "settings": asdict(settings),
         "lost_energy_max": float(np.max(lost_frac)),
@@ -379,7 +489,7 @@ def _assemble(g: Grid, hist: np.ndarray, scattered: np.ndarray, launched: np.nda
     hdr.setdefault("geometry_key", "")
     hdr.setdefault("inputs", {})
     arrays = {
-        "p": np.moveaxis(p.reshape(3, n_ti, n_to, n_po), 0, -1)[:, None].astype(np.float32),
+        "p": np.moveaxis(p.reshape(C, n_ti, n_to, n_po), 0, -1)[:, None].astype(np.float32),
         "albedo": albedo.T[:, None].astype(np.float32),
         "coverage": coverage.astype(np.float32),
         "width": np.ones(1, np.float32),
@@ -387,6 +497,9 @@ def _assemble(g: Grid, hist: np.ndarray, scattered: np.ndarray, launched: np.nda
         "photons": N[:, None].astype(np.int64),
         "lost": lost_frac.astype(np.float32),
     }
+    if levels is not None:
+        arrays["levels"] = np.asarray(levels, np.float64)
+        hdr["recolourable"] = True
     return YarnFarField(hdr, arrays)
 
 
@@ -397,9 +510,13 @@ def _assemble(g: Grid, hist: np.ndarray, scattered: np.ndarray, launched: np.nda
 def far_field_inputs(params: Any, fiber_diameter: float, slots: Sequence[Any],
                      settings: YarnBakeSettings) -> dict[str, Any]:
     """Everything the far field depends on (the cache key's content): the yarn's structure in
-    metres, the fiber diameter, each fiber variant's table and effective absorption."""
+    metres, the fiber diameter, each fiber variant's table and the settings (with the
+    absorption levels). Not the fibers' colour: a far field is recoloured, so every dye and
+    depth of shade of one yarn shares it."""
     mpu = float(params.meters_per_unit)
-    skip = {"prim_path", "expand", "linear_density", "fiber_diameter", "meters_per_unit"}
+    # Not the yarn's seed either: the far field averages over the fibers' placement, so yarns
+    # of one structure share it (the piece is expanded with a seed of its own).
+    skip = {"prim_path", "expand", "linear_density", "fiber_diameter", "meters_per_unit", "seed"}
     yarn = {}
     for k, v in asdict(params).items():
         if k in skip:
@@ -412,8 +529,7 @@ def far_field_inputs(params: Any, fiber_diameter: float, slots: Sequence[Any],
         "fiber_diameter": float(fiber_diameter),
         "fibers": [{"table": str(s.table.header.get("cache_key") or s.table.geometry_key),
                     "variant": int(s.table.variant),
-                    "photons": int(np.asarray(s.table.arrays["photons"]).sum()),
-                    "sigma_a": [round(float(x), 9) for x in s.sigma_a]} for s in slots],
+                    "photons": int(np.asarray(s.table.arrays["photons"]).sum())} for s in _tables(slots)],
         "settings": asdict(settings),
     }
 
@@ -422,32 +538,49 @@ def bake_yarn_far_field(params: Any, fiber_diameter: float, slots: Sequence[Any]
                         settings: YarnBakeSettings | None = None,
                         progress: Callable[[int, int], None] | None = None) -> YarnFarField:
     """Trace the far field of the yarn ``params`` whose fibers (``fiber_diameter``, scene units)
-    are the cross-section variants ``slots`` (:class:`~.fiber_bank.FiberSlot`: table and
-    colour), each fiber with a random variant and rotation psi, as the renderer draws them."""
+    are the cross-section variants ``slots`` (:class:`~.fiber_bank.FiberSlot`: their tables;
+    their colour is not used), each fiber with a random variant and rotation psi, as the
+    renderer draws them, at every absorption level of ``settings`` (recolourable: module
+    docstring)."""
     from usdfiber.backend import mitsuba
     from usdfiber.translators.mitsuba.curves import reference_normals
-    from usdfiber.translators.mitsuba.fiber_bank import FiberBank
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
     from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 
     mi = mitsuba()
     st = settings or YarnBakeSettings()
-    piece = yarn_piece(params, fiber_diameter, st)
+    # The piece's own fibers (the settings' seed), whatever the yarn's seed: a statistic of
+    # the structure, shared by every yarn of it (far_field_inputs).
+    piece = yarn_piece(replace(params, seed=st.seed), fiber_diameter, st)
     geom = piece.geometry
     rng = np.random.default_rng([st.seed, 0x7A22])
     nc = geom.curve_count
-    variant = rng.integers(0, len(slots), nc)
+    tables = _tables(slots)
+    variant = rng.integers(0, len(tables), nc)
     psi = rng.uniform(0.0, _TWO_PI, nc)
-    bank = FiberBank.build(list(slots))
-    bsdf = fiber_bsdf(mi, bank, variant[geom.segment_curve], psi[geom.segment_curve], reference_normals(geom))
+    # One slot per (level triple, table); BSDF j uses the slots of triple j.
+    lv = st.levels
+    triples = [tuple(lv[i:i + 3]) for i in range(0, len(lv), 3)]
+    bank = FiberBank.build([FiberSlot(t.table, tr) for tr in triples for t in tables])
+    seg_var, seg_psi, ref = variant[geom.segment_curve], psi[geom.segment_curve], reference_normals(geom)
+    bsdfs = [fiber_bsdf(mi, bank, j * len(tables) + seg_var, seg_psi, ref) for j in range(len(triples))]
     t0 = _time.perf_counter()
     inputs = far_field_inputs(params, fiber_diameter, slots, st)
-    ff = trace_far_field(piece, bsdf, st, progress,
+    ff = trace_far_field(piece, bsdfs, st, progress, levels=lv,
                          header={"geometry_key": _key(inputs), "inputs": inputs,
                                  "piece": {"fibers": piece.fibers, "segments": geom.segment_count,
                                            "length_over_bound_radius": piece.length,
                                            "bound_radius": piece.bound_radius}})
     ff.header["seconds"] = _time.perf_counter() - t0
     return ff
+
+
+def _tables(slots: Sequence[Any]) -> list[Any]:
+    """The distinct tables of ``slots``, in order (one slot per table; colours dropped)."""
+    out: dict[int, Any] = {}
+    for s in slots:
+        out.setdefault(id(s.table), s)
+    return list(out.values())
 
 
 def _key(inputs: dict[str, Any]) -> str:
@@ -486,3 +619,24 @@ class YarnFarFieldCache:
 
         return load_or_make(lambda: self.load(key), lambda: self.tables.lock("yarn-" + key), make,
                             make_missing=bake_missing)
+
+
+def far_field_entry(prim: str, stats: dict[str, int], ff: YarnFarField | None, traced: bool,
+                    seconds: float) -> dict[str, Any]:
+    """A yarn prim's line in a render's far-field report: its far field ``"traced"`` now (with
+    the seconds it took), found ``"cached"``, or ``"not needed"``, and why: how many of its
+    yarns were drawn with it in view (``stats["far"]``: narrower than the level of detail's
+    threshold, or not expanded), kept outside the view as proxies near it (``"culled"``) and
+    left out far outside it (``"skipped"``), from the yarn plan's ``stats``."""
+    in_view, proxies, skipped = int(stats.get("far", 0)), int(stats.get("culled", 0)), int(stats.get("skipped", 0))
+    why = []
+    if in_view:
+        why.append(f"{in_view} in view, too narrow to show their fibers or not expanded")
+    if proxies:
+        why.append(f"{proxies} outside the view but near enough to shadow or light it")
+    if skipped:
+        why.append(f"{skipped} far outside the view, left out")
+    return {"prim": prim, "far_field": "not needed" if ff is None else ("traced" if traced else "cached"),
+            "key": None if ff is None else ff.header.get("geometry_key"),
+            "seconds": float(seconds) if traced else 0.0,
+            "in_view": in_view, "proxies": proxies, "skipped": skipped, "reason": "; ".join(why)}

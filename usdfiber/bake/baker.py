@@ -33,10 +33,14 @@ Estimators (``BakeSettings.estimator``): the plain one by default; "stratified" 
 photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.sampling`);
 "reciprocity" averages every entry of a box-filtered table with its reciprocal partner
 (:mod:`usdfiber.bake.reciprocity`) when the table is assembled (its chunks hold the plain
-histograms). Both give every direction its own random streams (:func:`stream_seed`).
+histograms); "split" splits every hit of the outer surface into ``split_walks`` microsurface
+walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits). All
+give every direction its own random streams (:func:`stream_seed`).
 
-Incoming directions are sampled at bin centres by default (the paper's choice, for
-interpolation between nodes); ``BakeSettings(incoming="box")`` spreads each node's light over
+Grid: :meth:`BakeSettings.grid_for` (the settings' bin size and incoming node spacing, or with
+``auto_resolution=True`` those the fiber's band limit allows, :mod:`usdfiber.bake.band_limit`,
+recorded in the header's ``band_limit``). Incoming directions are sampled at the centres of
+their cells by default (the paper's choice, for interpolation between nodes); ``BakeSettings(incoming="box")`` spreads each node's light over
 its bin instead, which makes the discrete table reciprocal bin for bin.
 
 Resuming: with ``resume_dir``, every finished incoming direction is written there as a
@@ -61,9 +65,9 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from usdfiber.bake import band_limit
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.chunks import ResumeDirectory, chunk_name
-from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import check_memory, reciprocal_average
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
@@ -165,6 +169,7 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
     accs = [DirectionStatistics(ctx, ti, pi) for ti, pi in dirs]
     node = {id(a): d for a, d in zip(accs, dirs)}
     sampler = "sobol" if "stratified" in st.estimator else "independent"
+    split = int(st.split_walks) if "split" in st.estimator else 0
     while True:
         todo = [a for a in accs if a.queue]
         if not todo:
@@ -178,7 +183,7 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
             seeds = [batch_seed(st.seed, b) for _, b in batch]
         res = tracer.trace_many(ctx.fs, subs, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
                                 max_bounces=int(st.max_bounces), seed=seeds,
-                                cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler)
+                                cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:
@@ -198,11 +203,13 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
     from usdfiber.bake import tracer
 
     diameter = float(profile.circumscribed_diameter)
-    grid = Grid(st.resolution_deg, theta_symmetric=cut is None,
-                phi_invariant=is_rotationally_symmetric(profile))
+    grid = st.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
     if "reciprocity" in st.estimator:
         check_memory(grid, len(levels_um))      # before hours of tracing, not after
+    if "split" in st.estimator and cut is not None:
+        raise BakeError("estimator 'split' needs a fiber without cuticle scales (the test that light "
+                        "leaving through the scales never meets them again is not built)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # mesh remarks on cuticle shapes
         fs = tracer.prepare(profile, cut)
@@ -360,6 +367,11 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
         "target": st.target_error,
     }
     table.header["levels_optical_depth"] = [float(x) for x in st.levels]
+    if st.auto_resolution:
+        table.header["band_limit"] = {"rule_version": band_limit.RULE_VERSION,
+                                      "resolution_deg": grid.resolution_deg,
+                                      "incoming_deg": grid.incoming_spacing_deg,
+                                      "rule": "usdfiber.bake.band_limit"}
     table.header["leaks"] = int(stats["leaks"])
     return table
 
@@ -403,9 +415,8 @@ def _request_inputs(request: TableRequest) -> tuple[Any, float, float, tuple[flo
 
 def table_directions(request: TableRequest, settings: BakeSettings) -> list[tuple[int, int]]:
     """The incoming directions ``(ti, pi)`` :func:`bake_table` traces for ``request``, in its order."""
-    profile, _, _, cut = _request_inputs(request)
-    grid = Grid(settings.resolution_deg, theta_symmetric=cut is None,
-                phi_invariant=is_rotationally_symmetric(profile))
+    profile, _, beta_deg, cut = _request_inputs(request)
+    grid = settings.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
     return [(ti, pi) for ti in range(grid.n_theta_i) for pi in range(grid.n_phi_i)]
 
 

@@ -7,7 +7,9 @@ is the summed weight of its photons divided by (n_hit x its exact solid angle
 (sin th1 - sin th0) dphi), so ``sum(density * solid_angle)`` is the albedo Lambda(omega_i)
 and density / albedo is p(omega_o | omega_i).
 
-Each photon is weighted by exp(-sigma_a L) with its own path length L in the material: this is
+Each exit is weighted by exp(-sigma_a L) with its own path length L in the material (times its
+weight at zero absorption, ``TraceResult.weight``, where an estimator leaves several exits
+of fractional weight per photon): this is
 the direct answer that the baked tables' recolouring (:mod:`usdfiber.bake.absorption`, which
 keeps a few absorption levels per bin and interpolates between them) is checked against.
 """
@@ -25,9 +27,11 @@ __all__ = ["DEFAULT_GRID", "bin_direct"]
 DEFAULT_GRID = Grid(2.0)
 
 
-def _valid(result: Any) -> tuple[np.ndarray, np.ndarray]:
+def _valid(result: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     keep = ~np.asarray(result.cut, dtype=bool)
-    return np.asarray(result.directions)[keep], np.asarray(result.path_length, dtype=np.float64)[keep]
+    w = getattr(result, "weight", None)
+    w = np.ones(int(keep.sum())) if w is None else np.asarray(w, dtype=np.float64)[keep]
+    return np.asarray(result.directions)[keep], np.asarray(result.path_length, dtype=np.float64)[keep], w
 
 
 def bin_direct(result: Any, sigma_a: float | np.ndarray = 0.0, grid: Grid | None = None) -> np.ndarray:
@@ -37,11 +41,11 @@ def bin_direct(result: Any, sigma_a: float | np.ndarray = 0.0, grid: Grid | None
     channels.
     """
     grid = grid or DEFAULT_GRID
-    dirs, L = _valid(result)
+    dirs, L, w = _valid(result)
     idx = grid.bin_index(dirs) if len(dirs) else np.zeros(0, np.int64)
     nb = grid.n_theta_o * grid.n_phi_o
     norm = 1.0 / (max(int(result.n_hit), 1) * grid.bin_solid_angles().ravel())
     s = np.atleast_1d(np.asarray(sigma_a, dtype=np.float64))
-    out = np.stack([np.bincount(idx, weights=np.exp(-c * L), minlength=nb) * norm for c in s], axis=-1)
+    out = np.stack([np.bincount(idx, weights=w * np.exp(-c * L), minlength=nb) * norm for c in s], axis=-1)
     out = out.reshape(grid.n_theta_o, grid.n_phi_o, len(s))
     return out[..., 0] if np.ndim(sigma_a) == 0 else out

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FiberMesh", "build_fiber_mesh", "profile_bounds"]
+__all__ = ["FiberMesh", "build_fiber_mesh", "is_convex_loop", "profile_bounds"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,12 @@ class FiberMesh:
     z_invariant: bool           # True: extruded, traced with horizontal rays
     z_period: float             # length of the periodic slab [0, z_period) (cuticle), or segment length
     bound_radius: float         # every vertex lies within this distance of the z axis
+    #: (F,) bool: the face belongs to the outer surface (outer loop or cuticle scales), where
+    #: light leaves the fiber; False for the walls of holes (lumen), which it crosses inside.
+    outer_faces: np.ndarray | None = None
+    #: The outer loop is convex and there are no scales: light leaving through the outer
+    #: surface cannot meet the fiber again.
+    outer_convex: bool = False
 
     def to_mitsuba(self, mi: Any) -> Any:
         """Build the ``mi.Mesh`` (positions, faces, vertex normals) of this segment."""
@@ -92,6 +98,16 @@ def _facet_normals_2d(loop: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
+def is_convex_loop(loop: np.ndarray) -> bool:
+    """True when the closed polygon ``loop`` (counter-clockwise) turns left at every vertex."""
+    lp = np.asarray(loop, dtype=np.float64)
+    e = np.roll(lp, -1, axis=0) - lp
+    f = np.roll(e, -1, axis=0)
+    cross = e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0]
+    scale = float(np.max(np.abs(lp))) ** 2 if len(lp) else 1.0
+    return bool(np.all(cross >= -1e-12 * scale))
+
+
 def build_fiber_mesh(
     profile: Any,
     cuticle: tuple[float, float, float] | None = None,
@@ -118,7 +134,12 @@ def build_fiber_mesh(
     verts: list[np.ndarray] = []
     norms: list[np.ndarray] = []
     faces: list[np.ndarray] = []
+    outer_flags: list[np.ndarray] = []    # per block of faces: on the outer surface?
     count = 0
+
+    def add_faces(tri: np.ndarray, outer: bool) -> None:
+        faces.append(tri)
+        outer_flags.append(np.full(len(tri), outer))
 
     def add_ring(xy: np.ndarray, z: float, nrm3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Add one ring of vertices at height z; returns (start, end) vertex index per edge."""
@@ -145,12 +166,12 @@ def build_fiber_mesh(
 
     if cuticle is None:
         seg = float(length) if length else max(2.0 * radius, 1.0)
-        for lp, nm in zip(loops, loop_normals):
+        for j, (lp, nm) in enumerate(zip(loops, loop_normals)):
             sn = shading(lp, nm)
             n3 = np.column_stack([sn, np.zeros(len(sn))])
             a = add_ring(lp, -0.5 * seg, n3)
             b = add_ring(lp, 0.5 * seg, n3)
-            faces.append(_quads(a, b))
+            add_faces(_quads(a, b), j == 0)
         z_invariant, z_period, bound = True, seg, radius
     else:
         tilt_deg, height, spacing = (float(c) for c in cuticle)
@@ -180,17 +201,17 @@ def build_fiber_mesh(
         for k in range(periods):
             zs = (k + 0.5) * spacing
             top = add_ring(off(1.0), zs, sleeve_n)          # free edge of scale k
-            faces.append(_quads(lower, top))
+            add_faces(_quads(lower, top), True)
             if height > 0.0:
                 # Step face in the plane z = zs, looking towards +z: from the free edge
                 # (offset height) in to the root of the next scale (offset 0).
-                faces.append(_quads(add_ring(off(1.0), zs, step_n), add_ring(off(0.0), zs, step_n)))
+                add_faces(_quads(add_ring(off(1.0), zs, step_n), add_ring(off(0.0), zs, step_n)), True)
             lower = add_ring(off(0.0), zs, sleeve_n)         # root of scale k+1
-        faces.append(_quads(lower, add_ring(off(0.5), zlen, sleeve_n)))
+        add_faces(_quads(lower, add_ring(off(0.5), zlen, sleeve_n)), True)
         for lp, nm in zip(loops[1:], loop_normals[1:]):
             hn = shading(lp, nm)
             n3 = np.column_stack([hn, np.zeros(len(hn))])
-            faces.append(_quads(add_ring(lp, 0.0, n3), add_ring(lp, zlen, n3)))
+            add_faces(_quads(add_ring(lp, 0.0, n3), add_ring(lp, zlen, n3)), False)
         bound = float(np.max(np.linalg.norm(off(1.0), axis=1)))
         z_invariant, z_period = False, zlen
 
@@ -198,11 +219,12 @@ def build_fiber_mesh(
     N = np.concatenate(norms)
     N /= np.linalg.norm(N, axis=1, keepdims=True)
     F = np.concatenate(faces).astype(np.uint32)
+    outer_faces = np.concatenate(outer_flags)
     p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     fn = np.cross(p1 - p0, p2 - p0)
     area2 = np.linalg.norm(fn, axis=1)
     keep = area2 > 1e-12 * max(radius, 1.0) ** 2   # drop degenerate triangles
-    F, fn, area2 = F[keep], fn[keep], area2[keep]
+    F, fn, area2, outer_faces = F[keep], fn[keep], area2[keep], outer_faces[keep]
     fn /= area2[:, None]
     # The winding is chosen so that geometric normals leave the material; check it against the
     # smooth normals, which is what makes the tracer's inside/outside test trustworthy.
@@ -220,4 +242,6 @@ def build_fiber_mesh(
         z_invariant=z_invariant,
         z_period=z_period,
         bound_radius=bound * (1.0 + 1e-6) + 1e-6,
+        outer_faces=outer_faces,
+        outer_convex=cuticle is None and is_convex_loop(loops[0]),
     )

@@ -1,6 +1,7 @@
 """Looking up a table's values at arbitrary directions (interpolation between nodes and bins).
 
-Incoming directions: linear between the two nearest theta_i nodes (extruded tables mirror
+Incoming directions (nodes ``grid.incoming_step`` apart, :mod:`usdfiber.bake.grid`): linear
+between the two nearest theta_i nodes (extruded tables mirror
 the first node through theta_i = 0) and the two nearest phi_i nodes (periodic), or the
 nearest node. Outgoing directions: bilinear between bin centres (periodic in phi_o, constant
 beyond the outermost theta_o centres), or the bin's value, which is exactly the histogram.
@@ -39,7 +40,7 @@ def incoming_nodes(grid: Grid, theta_i: np.ndarray, phi_i: np.ndarray,
     else:
         flip_base = np.zeros(th.shape, dtype=bool)
         a = th
-    u = (a - grid.theta_i_min) / grid.step - 0.5
+    u = (a - grid.theta_i_min) / grid.incoming_step - 0.5
     if linear:
         k0 = np.floor(u)
         t = u - k0
@@ -61,7 +62,7 @@ def incoming_nodes(grid: Grid, theta_i: np.ndarray, phi_i: np.ndarray,
         ph_nodes = [(np.zeros(ph.shape, dtype=np.int64), np.ones(ph.shape))]
     else:
         n_p = grid.n_phi_i
-        v = np.mod(ph, _TWO_PI) / grid.step - 0.5
+        v = np.mod(ph, _TWO_PI) / grid.incoming_step - 0.5
         if linear:
             j0 = np.floor(v)
             t = v - j0
@@ -127,7 +128,7 @@ def eval_directional(grid: Grid, band_start: np.ndarray, values: np.ndarray, the
     ph_i = ph_i - psi
     ph_o = ph_o - psi
     if grid.phi_invariant:
-        ph_o = ph_o - ph_i + 0.5 * grid.step
+        ph_o = ph_o - ph_i + grid.phi_i_origin
     out = np.zeros(th_i.shape + (values.shape[-1],))
     for ti, pi, flip, w in incoming_nodes(grid, th_i, ph_i, interp_i == "linear"):
         th = np.where(flip, -th_o, th_o)

@@ -35,15 +35,26 @@ import numpy as np
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError
 
-__all__ = ["MAX_BYTES", "check_memory", "partner_bins", "reciprocal_average"]
+__all__ = ["MAX_BYTES", "check_grid", "check_memory", "partner_bins", "reciprocal_average"]
 
 #: Largest memory the averaging may take (all directions' H and G in float32, twice).
 MAX_BYTES = 4 << 30
 
 
+def check_grid(grid: Grid) -> None:
+    """Raise BakeError when ``grid``'s incoming nodes are not its bin centres: an entry's
+    reciprocal partner is then no entry of the table."""
+    if grid.incoming_deg is not None:
+        raise BakeError(f"reciprocity averaging needs incoming nodes at the bin centres; this grid has "
+                        f"{grid.resolution_deg:g} deg bins and {grid.incoming_deg:g} deg incoming nodes: "
+                        "bake it without the 'reciprocity' estimator or without incoming_deg")
+
+
 def check_memory(grid: Grid, n_levels: int) -> None:
     """Raise BakeError (before anything is traced) when averaging a table of ``grid`` with
-    ``n_levels`` absorption levels would take more than :data:`MAX_BYTES`."""
+    ``n_levels`` absorption levels would take more than :data:`MAX_BYTES`, or when the grid
+    has no reciprocal partners (:func:`check_grid`)."""
+    check_grid(grid)
     need = 4 * grid.n_theta_i * grid.n_phi_i * grid.n_theta_o * grid.n_phi_o * int(n_levels) * 4
     if need > MAX_BYTES:
         raise BakeError(f"reciprocity averaging of a {grid.resolution_deg:g} deg table with "
@@ -56,8 +67,9 @@ def partner_bins(grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     """For every entry (ti, pi, row, col), its reciprocal partner's (ti', pi', row', col').
 
     Four int64 arrays of shape (n_theta_i, n_phi_i, n_theta_o, n_phi_o). Applying the map
-    twice gives the identity.
+    twice gives the identity. BakeError for a grid with coarser incoming nodes (:func:`check_grid`).
     """
+    check_grid(grid)
     n_ti, n_pi, n_r, n_c = grid.n_theta_i, grid.n_phi_i, grid.n_theta_o, grid.n_phi_o
     ti, pi, ro, co = np.meshgrid(np.arange(n_ti), np.arange(n_pi), np.arange(n_r), np.arange(n_c),
                                  indexing="ij")

@@ -25,7 +25,7 @@ import numpy as np
 
 from usdfiber.bake.absorption import level_bracket
 
-__all__ = ["available", "recolour_p"]
+__all__ = ["available", "recolour_basis", "recolour_p"]
 
 #: Elements of the level arrays (or of the output) per launch: indices stay 32-bit.
 _MAX_ELEMENTS = 1 << 31
@@ -100,25 +100,73 @@ def recolour_p(p: np.ndarray, lbar: np.ndarray, level_scale: np.ndarray, domega:
         # (The arrays Dr.Jit maps stay referenced here until the results are read back.)
         p_c, l_c = np.ascontiguousarray(p[d0:d1]), np.ascontiguousarray(lbar[d0:d1])
         gs = _masses(dr, Float, ftype, UInt32, chans, p_c, l_c, scale[d0:d1], K, B, n_po)
-        # Normalize each (channel, direction): row sums on all cores, totals in numpy (small),
-        # then one kernel that scales and writes the channels one after the other.
-        n = d1 - d0
-        invs = []
-        for g in gs:
-            tot = np.einsum("db,db->d", dr.block_sum(g, n_po).numpy().reshape(n, B), domega[d0:d1])
-            invs.append(np.where(tot > 0.0, 1.0 / np.where(tot > 0.0, tot, 1.0), 0.0))
-        N = n * B * n_po
-        lane = dr.arange(UInt32, len(gs) * N)
-        c = lane // N
-        i = lane - c * N
-        res = Float(0.0)
-        for ci, g in enumerate(gs):
-            res = dr.select(c == ci, dr.gather(Float, g, i, c == ci), res)
-        inv = Float(np.concatenate(invs).astype(np.float32))
-        res = res * dr.gather(Float, inv, c * n + i // (B * n_po))
-        block = res.numpy().reshape(len(gs), n, B, n_po)
+        block = _normalized(dr, Float, UInt32, gs, domega[d0:d1], B, n_po)
         if per >= n_dir:
             return np.moveaxis(block, 0, -1)     # one launch: the kernel's memory is the result
+        out[:, d0:d1] = block
+    return np.moveaxis(out, 0, -1)
+
+
+def _normalized(dr, Float, UInt32, gs: list, domega: np.ndarray, B: int, n_po: int) -> np.ndarray:
+    """(C, n_dir, B, n_po) float32: each channel's masses per steradian ``gs`` (Dr.Jit arrays
+    of n_dir x B x n_po) scaled so that every (channel, direction) integrates to 1 over the band:
+    row sums on all cores, totals in numpy (small), then one kernel that scales and writes the
+    channels one after the other."""
+    n = domega.shape[0]
+    invs = []
+    for g in gs:
+        tot = np.einsum("db,db->d", dr.block_sum(g, n_po).numpy().reshape(n, B), domega)
+        invs.append(np.where(tot > 0.0, 1.0 / np.where(tot > 0.0, tot, 1.0), 0.0))
+    N = n * B * n_po
+    lane = dr.arange(UInt32, len(gs) * N)
+    c = lane // N
+    i = lane - c * N
+    res = Float(0.0)
+    for ci, g in enumerate(gs):
+        res = dr.select(c == ci, dr.gather(Float, g, i, c == ci), res)
+    inv = Float(np.concatenate(invs).astype(np.float32))
+    res = res * dr.gather(Float, inv, c * n + i // (B * n_po))
+    return res.numpy().reshape(len(gs), n, B, n_po)
+
+
+def recolour_basis(basis: np.ndarray, coef: np.ndarray, domega: np.ndarray) -> np.ndarray:
+    """Normalized p per steradian of a compressed table (:mod:`usdfiber.bake.compression`).
+
+    ``basis``: (n_dir, R, B, n_po) float16 or float32; ``coef``: (n_dir, C, R) the basis
+    coefficients of each channel's absorption; ``domega``: (n_dir, B). Each bin reads its R
+    basis values once for all channels: ``p = max(0, sum_j c_j b_j)``, then each (direction,
+    channel) is normalized. Returns a (n_dir, B, n_po, C) float32 view of channel-major memory
+    (the arithmetic of :func:`~usdfiber.bake.compression.reconstruct_p`).
+    """
+    import drjit as dr
+    from drjit.llvm import Float, Float16, UInt32
+
+    n_dir, R, B, n_po = basis.shape
+    C = coef.shape[1]
+    ftype = Float16 if basis.dtype == np.float16 else Float
+    domega = np.asarray(domega, dtype=np.float64)
+    BP = B * n_po
+    per = max(1, _MAX_ELEMENTS // (max(R, C) * BP))
+    out = np.empty((C, n_dir, B, n_po), dtype=np.float32) if per < n_dir else None
+    for d0 in range(0, n_dir, per):
+        d1 = min(n_dir, d0 + per)
+        b_c = np.ascontiguousarray(basis[d0:d1])
+        b_d = ftype(b_c.reshape(-1))                 # mapped, not copied
+        cf = Float(np.ascontiguousarray(coef[d0:d1], dtype=np.float32).reshape(-1))
+        lane = dr.arange(UInt32, (d1 - d0) * BP)
+        d = lane // BP
+        base = lane + d * ((R - 1) * BP)             # component 0 of bin j of direction d
+        comps = [Float(dr.gather(ftype, b_d, base + j * BP)) for j in range(R)]
+        gs = []
+        for c in range(C):
+            m = Float(0.0)
+            for j in range(R):
+                m = dr.fma(dr.gather(Float, cf, d * (C * R) + (c * R + j)), comps[j], m)
+            gs.append(dr.maximum(m, 0.0))
+        dr.eval(*gs)
+        block = _normalized(dr, Float, UInt32, gs, domega[d0:d1], B, n_po)
+        if per >= n_dir:
+            return np.moveaxis(block, 0, -1)
         out[:, d0:d1] = block
     return np.moveaxis(out, 0, -1)
 

@@ -77,7 +77,7 @@ def sample_outgoing(rec: Any, theta_i, phi_i, u: np.ndarray, *, psi: float = 0.0
     theta = np.where(flip, -theta, theta)
     phi = (c + u[..., 4]) * g.step
     if g.phi_invariant:
-        phi = phi + ph_i - 0.5 * g.step
+        phi = phi + ph_i - g.phi_i_origin
     phi = np.mod(phi + psi, _TWO_PI)
     pdf = rec.eval_p(th_i, ph_i + psi, theta, phi, psi=psi, interp_i=interp_i,
                      interp_o="nearest").mean(axis=-1)

@@ -10,10 +10,11 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from usdfiber.bake import band_limit
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
            "RENDER_BAKE_SETTINGS", "BakeError", "BakeSettings", "directions_per_group"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
@@ -26,9 +27,13 @@ BUILTIN_PROFILE_VERTICES = 512
 #: plain estimator): "stratified", the beam offset and the first boundary event from
 #: Owen-scrambled Sobol points per direction and batch (:mod:`usdfiber.bake.sampling`);
 #: "reciprocity", sigma(i, o) and sigma(o, i) averaged with inverse-variance weights
-#: (:mod:`usdfiber.bake.reciprocity`, box-filtered tables only). Both trace every direction
-#: with its own random streams.
-ESTIMATORS = ("reciprocity", "stratified")
+#: (:mod:`usdfiber.bake.reciprocity`, box-filtered tables only); "split", every hit of the
+#: outer surface split into ``BakeSettings.split_walks`` microsurface walks, those that leave
+#: the fiber deposited with weight 1/K each (:func:`usdfiber.bake.tracer.trace`, fibers
+#: without cuticle scales). All trace every direction with its own random streams.
+ESTIMATORS = ("reciprocity", "split", "stratified")
+#: Most walks per split (``BakeSettings.split_walks``).
+MAX_SPLIT_WALKS = 64
 
 
 class BakeError(ValueError):
@@ -39,7 +44,13 @@ class BakeError(ValueError):
 class BakeSettings:
     """How a table is baked. Every field changes the result (and so the cache key).
 
-    ``resolution_deg``: bin size (divides 90; the paper uses 2). ``photons``: photons per
+    ``resolution_deg``: bin size (divides 90; the paper uses 2). ``incoming_deg``: the
+    incoming node spacing, a multiple of ``resolution_deg`` dividing 90 (None:
+    ``resolution_deg``, the paper's grid, whose tables and cache keys do not mention it).
+    ``auto_resolution``: the outgoing bins and incoming nodes are those the fiber's band limit
+    allows against the paper's 2 degree grid (:mod:`usdfiber.bake.band_limit`, chosen per table
+    from its roughness and cross section and recorded in its header; ``resolution_deg`` then
+    stays 2, the finest grid the rule chooses). ``photons``: photons per
     incoming direction, or the first amount when ``target_error`` is set (a relative L2
     error of p; batches are then added up to ``max_photons`` per direction). ``batches``:
     independent batches per direction for the error estimate (>= 2). ``levels``: absorption
@@ -66,9 +77,15 @@ class BakeSettings:
     storage: str = "float16"
     incoming: str = "centre"
     estimator: tuple[str, ...] = ()
+    incoming_deg: float | None = None
+    auto_resolution: bool = False
+    #: Walks per outer-surface hit of the "split" estimator (part of the cache key only with it).
+    split_walks: int = 8
 
     def __post_init__(self) -> None:
         # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
+        auto = bool(self.auto_resolution)
+        object.__setattr__(self, "auto_resolution", auto)
         for name, kind in (("resolution_deg", float), ("photons", int), ("max_photons", int), ("batches", int),
                            ("max_bounces", int), ("seed", int), ("band_tail", float)):
             value = getattr(self, name)
@@ -83,7 +100,14 @@ class BakeSettings:
             object.__setattr__(self, "target_error", float(self.target_error))
         if not 0 <= self.seed < 2 ** 32:
             raise BakeError(f"seed must be an integer from 0 to 2^32 - 1, got {self.seed}")
-        Grid(self.resolution_deg, True, False)  # validates the resolution
+        try:  # validates the resolution and the incoming spacing (None when equal to it)
+            g = Grid(self.resolution_deg, True, False, None if self.incoming_deg is None else float(self.incoming_deg))
+        except (TypeError, ValueError) as exc:
+            raise BakeError(str(exc)) from None
+        object.__setattr__(self, "incoming_deg", g.incoming_deg)
+        if auto and (self.resolution_deg != band_limit.FINEST_DEG or self.incoming_deg is not None):
+            raise BakeError("resolution 'auto' chooses the bins and incoming nodes itself: give no resolution "
+                            "or incoming spacing with it")
         if int(self.photons) < 1:
             raise BakeError(f"photons must be >= 1, got {self.photons}")
         if self.target_error is not None and not (0 < float(self.target_error) < 1):
@@ -114,6 +138,24 @@ class BakeSettings:
             raise BakeError("estimator 'reciprocity' needs incoming='box' (only box-filtered tables "
                             "are reciprocal bin for bin)")
         object.__setattr__(self, "estimator", est)
+        sw = self.split_walks
+        if isinstance(sw, bool) or not isinstance(sw, (int, float)) or int(sw) != sw or not 1 <= int(sw) <= MAX_SPLIT_WALKS:
+            raise BakeError(f"split_walks must be an integer from 1 to {MAX_SPLIT_WALKS}, got {sw!r}")
+        object.__setattr__(self, "split_walks", int(sw))
+        if self.incoming == "box" and (auto or self.incoming_deg is not None):
+            # A box node spreads its light over one outgoing bin's solid angle, not a coarser cell.
+            raise BakeError("incoming='box' needs incoming nodes as far apart as the bins (no "
+                            "incoming_deg, no resolution 'auto')")
+
+    def grid_for(self, beta_deg: float, round_profile: bool, cuticle: bool) -> Grid:
+        """The grid of a table of a fiber with roughness ``beta_deg``, a rotationally symmetric
+        profile or not and cuticle scales or not (these also set the grid's symmetries)."""
+        if self.auto_resolution:
+            res, inc = band_limit.band_limited_grid(beta_deg, round_profile, cuticle, photons=self.photons,
+                                                    target_error=self.target_error)
+        else:
+            res, inc = float(self.resolution_deg), self.incoming_deg
+        return Grid(res, theta_symmetric=not cuticle, phi_invariant=round_profile, incoming_deg=inc)
 
     @property
     def photons_per_batch(self) -> int:
@@ -126,7 +168,8 @@ class BakeSettings:
         the float64 sums of a group of directions in flight (:mod:`usdfiber.bake.statistics`)
         and the tracer's photons (about 2^21 at 64 bytes); with the "reciprocity" estimator,
         also every direction's histograms in float32, twice (:mod:`usdfiber.bake.reciprocity`)."""
-        g = Grid(self.resolution_deg, True, False)
+        # (with auto_resolution, resolution_deg is the finest grid the rule chooses)
+        g = Grid(self.resolution_deg, True, False, self.incoming_deg)
         K = len(self.levels)
         per_direction = K * g.n_theta_o * g.n_phi_o
         item = 2 if self.storage == "float16" else 4
@@ -143,6 +186,14 @@ class BakeSettings:
             d["estimator"] = list(self.estimator)
         else:
             d.pop("estimator")  # the plain estimator: keys of tables baked before it existed
+        if "split" not in self.estimator:
+            d.pop("split_walks")    # only used by the split estimator
+        if self.incoming_deg is None:
+            d.pop("incoming_deg")  # the paper's grid: keys of tables baked before it existed
+        if self.auto_resolution:
+            d["band_limit_rule"] = band_limit.RULE_VERSION
+        else:
+            d.pop("auto_resolution")  # the paper's grid: keys of tables baked before it existed
         if self.target_error is None:
             d.pop("max_photons")  # only used in target-error mode
         d["builtin_profile_vertices"] = BUILTIN_PROFILE_VERTICES

@@ -111,12 +111,13 @@ class DirectionStatistics:
         g, nb, K = ctx.grid, self.nb, len(ctx.levels_um)
         idx = g.bin_index(r.directions)
         L = r.path_length.astype(np.float64)
-        alive = ~np.asarray(r.cut, dtype=bool)
+        # Exit weights at zero absorption (0 for cut photons; fractional with splitting, where
+        # one photon leaves several exits: its batch still is one independent sample).
+        w0 = r.exit_weights()
         h = np.zeros((K, nb))
         gl = np.zeros((K, nb))
         for k, s in enumerate(ctx.levels_um):
-            w = np.exp(-s * L) if s > 0 else np.ones_like(L)
-            w = np.where(alive, w, 0.0)
+            w = w0 * np.exp(-s * L) if s > 0 else w0
             h[k] = np.bincount(idx, weights=w, minlength=nb)
             gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
         if ctx.cuticle is None:

@@ -6,7 +6,8 @@ checks them when a table is read (:func:`check_layout`). What the values mean: `
 ``Lambda`` and ``W`` in :mod:`usdfiber.bake.table`, the absorption levels in
 :mod:`usdfiber.bake.absorption`, the grid in :mod:`usdfiber.bake.grid`.
 
-``n_ti, n_pi``: incoming nodes; ``K``: levels; ``n_to, n_po``: outgoing bins; ``B``: the
+``n_ti, n_pi``: incoming nodes (``incoming_deg`` apart when the header's ``resolution`` has
+it, else one bin apart: :mod:`usdfiber.bake.grid`); ``K``: levels; ``n_to, n_po``: outgoing bins; ``B``: the
 theta_o band (rows ``band_start .. band_start + B - 1`` of each incoming direction hold all
 but ``band_tail`` of its mass at every level; the rest is dropped and ``p`` renormalized).
 
@@ -89,7 +90,10 @@ def check_layout(header: Mapping[str, Any], arrays: Mapping[str, np.ndarray], wh
     if not isinstance(lay, dict) or lay.get("name") != LAYOUT or lay.get("version") != LAYOUT_VERSION:
         raise TableLayoutError(f"{where}: unsupported array layout {lay!r} "
                                f"(this usdfiber reads {LAYOUT} version {LAYOUT_VERSION})")
-    g = Grid.from_header(header["resolution"])
+    try:
+        g = Grid.from_header(header["resolution"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TableLayoutError(f"{where}: bad resolution entry in the header: {exc}") from None
     p = arrays["p"]
     K = len(arrays["levels"])
     expect = (g.n_theta_i, g.n_phi_i, K)
@@ -119,8 +123,9 @@ def read_table_file(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[
 
 
 def write_table_file(path: str | os.PathLike[str], header: Mapping[str, Any],
-                     arrays: Mapping[str, np.ndarray]) -> dict[str, Any]:
-    """Write a table atomically (compressed); returns the header written. The container's
-    own entries of ``header`` (format, version, arrays, checksums) are recomputed."""
+                     arrays: Mapping[str, np.ndarray], *, compress: bool = True) -> dict[str, Any]:
+    """Write a table atomically (zip-deflated unless ``compress`` is False: arrays that a codec
+    already compressed gain nothing); returns the header written. The container's own entries
+    of ``header`` (format, version, arrays, checksums) are recomputed."""
     hdr = {k: v for k, v in header.items() if k not in ("arrays", "checksums", "format", "version")}
-    return table_format.write_table(path, hdr, arrays)
+    return table_format.write_table(path, hdr, arrays, compress=compress)

@@ -64,6 +64,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from usdfiber.bake import compression
 from usdfiber.bake import recolour as kernels
 from usdfiber.bake.absorption import level_bracket, log_interpolate
 from usdfiber.bake.grid import Grid
@@ -74,6 +75,9 @@ from usdfiber.bake.storage import check_layout, read_table_file, write_table_fil
 __all__ = ["BcsdfTable", "Recoloured"]
 
 _TWO_PI = 2.0 * math.pi
+#: Recolourings a table keeps for reuse: at most this many, and this many bytes of p.
+_RECOLOUR_CACHE_ENTRIES = 8
+_RECOLOUR_CACHE_BYTES = 1 << 30
 
 
 def _channels(x: np.ndarray, scalar: bool) -> np.ndarray:
@@ -143,7 +147,15 @@ class BcsdfTable:
     _domega_band: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        self.grid = check_layout(self.header, self.arrays, self.path or "table")
+        where = self.path or "table"
+        if self.compressed:
+            # The codec's bytes are decoded once, on load (checked against the header).
+            self.grid = compression.check_layout(self.header, self.arrays, where)
+            if "basis" not in self.arrays:
+                self.arrays["basis"] = compression.decode_basis(self.header, self.arrays, where)
+            compression.check_layout(self.header, self.arrays, where)
+        else:
+            self.grid = check_layout(self.header, self.arrays, where)
 
     # ---- I/O -------------------------------------------------------------------------------
     @classmethod
@@ -154,12 +166,30 @@ class BcsdfTable:
 
     def save(self, path: str | Path) -> dict[str, Any]:
         """Write the table atomically (compressed); returns the header written."""
-        written = write_table_file(path, self.header, self.arrays)
+        if self.compressed:   # the codec's bytes, not the decoded basis; zip adds nothing to them
+            arrays = {k: v for k, v in self.arrays.items() if k != "basis"}
+            written = write_table_file(path, self.header, arrays, compress=False)
+        else:
+            written = write_table_file(path, self.header, self.arrays)
         self.header = written
         self.path = str(path)
         return written
 
+    def compress(self, bound: float = compression.DEFAULT_BOUND, *, rank: int | None = None,
+                 progress: Any = None) -> "BcsdfTable":
+        """This table in the compact, recolourable layout of :mod:`usdfiber.bake.compression`,
+        p within ``bound`` relative L2 per direction at every checked absorption
+        (CompressionError when it cannot be)."""
+        header, arrays = compression.compress_table(self, bound, rank=rank, progress=progress)
+        return BcsdfTable(header=header, arrays=arrays)
+
     # ---- metadata --------------------------------------------------------------------------
+    @property
+    def compressed(self) -> bool:
+        """Whether the table is in the absorption-basis layout (:mod:`usdfiber.bake.compression`)."""
+        lay = self.header.get("layout", {})
+        return isinstance(lay, dict) and lay.get("name") == compression.LAYOUT
+
     @property
     def levels(self) -> np.ndarray:
         return self.arrays["levels"]
@@ -170,7 +200,7 @@ class BcsdfTable:
 
     @property
     def n_band(self) -> int:
-        return int(self.arrays["p"].shape[3])
+        return int(self.arrays["basis" if self.compressed else "p"].shape[3])
 
     @property
     def geometry_key(self) -> str:
@@ -205,9 +235,34 @@ class BcsdfTable:
         """Bytes of the arrays in memory (the file is compressed on top)."""
         return int(sum(a.nbytes for a in self.arrays.values()))
 
+    def p_directions(self, sigmas: Sequence[float], directions: np.ndarray) -> np.ndarray:
+        """Recoloured p of the flat incoming ``directions`` (indices into theta_i x phi_i) for
+        each effective absorption: (n, B, n_po, C) float32, from the levels (the uncompressed
+        reference that :mod:`usdfiber.bake.compression` is checked against)."""
+        if self.compressed:
+            raise ValueError(f"{self.path or 'table'}: p_directions reads the levels of an uncompressed table")
+        p, lb = self.arrays["p"], self.arrays["lbar"]
+        n_ti, n_pi, K, B, n_po = p.shape
+        idx = np.asarray(directions, dtype=np.int64)
+        flat = lambda a: a.reshape((n_ti * n_pi,) + a.shape[2:])[idx]
+        scale = flat(self.arrays["p_scale"].astype(np.float64) * self.arrays["albedo"])
+        dom = flat(self.domega_band())
+        if kernels.available():
+            return kernels.recolour_p(flat(p), flat(lb), scale, dom, self.levels, sigmas)
+        out = []
+        for s in sigmas:
+            F = log_interpolate(self.levels, float(s),
+                                lambda k: flat(p[:, :, k]).astype(np.float64) * scale[:, k, None, None],
+                                lambda k: flat(lb[:, :, k]).astype(np.float64))
+            tot = F.sum(axis=(-2, -1), keepdims=True)
+            out.append((np.where(tot > 0, F / np.where(tot > 0, tot, 1.0), 0.0) / dom[..., None]).astype(np.float32))
+        return np.stack(out, axis=-1)
+
     # ---- levels ----------------------------------------------------------------------------
     def level_p(self, k: int) -> np.ndarray:
         """p at level k (n_ti, n_pi, B, n_po), float32, per steradian."""
+        if self.compressed:
+            return self._p_channels([float(self.levels[k])], kernels.available())[..., 0]
         return self.arrays["p"][:, :, k].astype(np.float32) * self.arrays["p_scale"][:, :, k, None, None]
 
     def _level_mass(self, k: int) -> np.ndarray:
@@ -227,12 +282,29 @@ class BcsdfTable:
 
     def _p_reference(self, s: float) -> np.ndarray:
         """Recoloured p for one absorption, float64 numpy (one core; slow on large tables)."""
+        if self.compressed:
+            return self._p_basis([s], kernel=False)[..., 0].astype(np.float64)
         F = self._mass_at(s)
         tot = F.sum(axis=(-2, -1), keepdims=True)
         return np.where(tot > 0, F / np.where(tot > 0, tot, 1.0), 0.0) / self.domega_band()[..., None]
 
+    def _p_basis(self, sigmas: Sequence[float], kernel: bool) -> np.ndarray:
+        """Recoloured p of a compressed table, (n_ti, n_pi, B, n_po, C) float32."""
+        basis = self.arrays["basis"]
+        n_ti, n_pi, R, B, n_po = basis.shape
+        n = n_ti * n_pi
+        coef = compression.coefficients(self.arrays["absorptions"], self.arrays["coef"].reshape(n, -1, R), sigmas)
+        dom = self.domega_band().reshape(n, B)
+        if kernel:
+            out = kernels.recolour_basis(basis.reshape(n, R, B, n_po), coef, dom)
+            return out.reshape(n_ti, n_pi, B, n_po, len(sigmas))
+        p = compression.reconstruct_p(basis.reshape(n, R, B * n_po), coef, np.repeat(dom, n_po, axis=1))
+        return np.moveaxis(p, 1, -1).reshape(n_ti, n_pi, B, n_po, len(sigmas))
+
     def _p_channels(self, sigmas: Sequence[float], kernel: bool) -> np.ndarray:
         """Recoloured p for each absorption, (n_ti, n_pi, B, n_po, C) float32."""
+        if self.compressed:
+            return self._p_basis(sigmas, kernel)
         if kernel:
             p, lb = self.arrays["p"], self.arrays["lbar"]
             n_ti, n_pi, K, B, n_po = p.shape
@@ -274,9 +346,13 @@ class BcsdfTable:
             p = self._p_channels(key, use_kernel)
         alb = np.stack([self._albedo_at(s).astype(np.float32) for s in key], axis=-1)
         rec = Recoloured(self, eff, p, alb)
-        if len(self._recoloured) >= 8:
-            self._recoloured.clear()
-        self._recoloured[(key, use_kernel)] = rec
+        # Keep a few recent colours, but not several full tables' worth (a 2 degree RGB p is
+        # 1.5 GB, larger than the whole budget: not kept): the oldest go first.
+        if rec.p.nbytes <= _RECOLOUR_CACHE_BYTES:
+            self._recoloured[(key, use_kernel)] = rec
+        while len(self._recoloured) > _RECOLOUR_CACHE_ENTRIES or sum(
+                r.p.nbytes for r in self._recoloured.values()) > _RECOLOUR_CACHE_BYTES:
+            del self._recoloured[next(iter(self._recoloured))]
         return rec
 
     # ---- evaluation --------------------------------------------------------------------------
@@ -347,4 +423,6 @@ class BcsdfTable:
             "albedo_min": float(alb0.min()),
             "albedo_max": float(alb0.max()),
             "nbytes": self.nbytes(),
+            **({"compression": {k: self.header["compression"][k] for k in ("codec", "bound", "rank", "error_max", "error_rms")}}
+               if self.compressed else {}),
         }

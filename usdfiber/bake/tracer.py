@@ -31,6 +31,17 @@ medium (a sliver thinner than float32 resolves, e.g. the tip of a slit lumen) is
 through without interaction; a photon in the material that misses everything slipped through
 a crack and is nudged and traced once more. ``TraceResult.extra["leaks"]`` counts both (about
 1e-6 per photon); ``extra["forced"]`` counts walks stopped after 256 microsurface events.
+
+Splitting at the outer surface (``split=K``, extruded fibers): a photon that reaches the outer
+surface (from outside or from inside; hole walls are not split) pauses; between phases, K
+independent microsurface walks are run from its state, K lanes per photon, in a loop of their
+own without ray casts. Each of the K results has exactly the distribution of the one walk it
+replaces, so depositing each result that leaves the fiber for good (no re-entry: a ray cast,
+skipped when the outer loop is convex) with weight w / K, and continuing with one of the
+others, chosen uniformly, with probability (their number) / K (Russian roulette, so that paths
+are as long as without splitting), estimates the same far field. A smooth surface draws the K
+Fresnel choices at once, inside the kernel. The result then holds several weighted exits per
+photon (:attr:`TraceResult.weight`). Its cost and gain: bench/REPORT.md, section 7.
 """
 from __future__ import annotations
 
@@ -42,18 +53,22 @@ import numpy as np
 from usdfiber.backend import mitsuba
 from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
+from usdfiber.bake.settings import MAX_SPLIT_WALKS
 
 __all__ = ["FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
 
 
 @dataclass
 class TraceResult:
-    """Exits of the photons that hit the fiber (numpy, one row per photon that hit).
+    """Exits of the photons that hit the fiber (numpy, one row per exit).
 
     ``directions`` are unit exit directions in the fiber frame (towards the viewer), ``path_length``
     is the distance travelled inside the material (holes excluded), in micrometres; ``cut`` marks
     photons stopped by ``max_bounces`` or ``max_steps`` (their direction is meaningless and they
     carry no weight); ``bounces`` counts boundary hits (a microsurface walk is one).
+    ``weight`` is each exit's weight at zero absorption: None means one exit of weight 1 per
+    photon that hit (the plain estimator); with splitting a photon leaves several exits of
+    fractional weight (a photon whose path ended inside a split has no row of its own).
     """
 
     directions: np.ndarray          # (M, 3) float32
@@ -70,6 +85,12 @@ class TraceResult:
     beta_deg: float
     seconds: float = 0.0            # wall time of the trace (mesh build excluded)
     extra: dict = field(default_factory=dict)
+    weight: np.ndarray | None = None  # (M,) float32 exit weights; None: all 1
+
+    def exit_weights(self) -> np.ndarray:
+        """(M,) float64 weight of each exit at zero absorption (0 for cut photons)."""
+        w = np.ones(len(self.path_length)) if self.weight is None else self.weight.astype(np.float64)
+        return np.where(np.asarray(self.cut, dtype=bool), 0.0, w)
 
     @property
     def n_cut(self) -> int:
@@ -93,8 +114,7 @@ class TraceResult:
         s = np.asarray(sigma_a, dtype=np.float64)
         L = self.path_length.astype(np.float64)
         w = np.exp(-np.multiply.outer(L, s))
-        w[self.cut] = 0.0
-        return w
+        return w * self.exit_weights().reshape((-1,) + (1,) * s.ndim)
 
     def albedo(self, sigma_a: float | np.ndarray = 0.0) -> float | np.ndarray:
         """Surviving weight / photons that hit, for absorption ``sigma_a`` (1/um)."""
@@ -112,6 +132,7 @@ class FiberScene:
     normals: Any        # mi.Float, flat (V*3) shading normals
     face_normals: Any   # mi.Float, flat (F*3) geometric normals
     cuticle: tuple[float, float, float] | None
+    outer: Any = None   # mi.UInt32, (F,): 1 where the face is on the outer surface
 
 
 def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **mesh_kw: Any) -> FiberScene:
@@ -127,6 +148,7 @@ def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **m
         normals=mi.Float(mesh.normals.astype(np.float32).ravel()),
         face_normals=mi.Float(mesh.face_normals.astype(np.float32).ravel()),
         cuticle=cuticle,
+        outer=mi.UInt32(np.asarray(mesh.outer_faces, dtype=np.uint32)),
     )
 
 
@@ -148,6 +170,12 @@ def _seed_mix(seed: int) -> int:
 _INV_SQRT_PI = float(1.0 / np.sqrt(np.pi))
 _MAX_WALK = 256          # microsurface events per boundary before a photon is forced out
 _NEWTON = 48             # bracketed Newton steps of the below-horizon slope inversion (float64)
+#: Splitting: outer-surface hits of a photon that are split (the first ones; later hits take
+#: one walk). Each split is a pause between phases, a round of launches for the photons still
+#: bouncing; splitting only the first 4 kept a quarter of the variance gain on silk, whose
+#: light leaves after many hits of the outer surface (bench/REPORT.md, section 7).
+_SPLIT_HITS = 64
+_SPLIT_CHUNK = 1 << 21   # splitting: most walks traced together between phases
 
 
 def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
@@ -265,11 +293,13 @@ class _Launch:
 
 
 def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, max_bounces: int,
-                 max_steps: int, mode: str, phase_steps: int = 8) -> dict:
+                 max_steps: int, mode: str, phase_steps: int = 8, split: int = 0) -> dict:
     """Trace the photons of ``launch`` (any mix of incoming directions) in one kernel.
 
     Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces``, ``leaks`` and
-    ``forced`` per lane. The loop runs in phases of ``phase_steps`` iterations; between
+    ``forced`` per lane, and ``w``, the lane's final weight, and ``deposits`` (lane, direction,
+    L, weight, bounces of every exit deposited on the way) when ``split`` (K walks per outer
+    boundary hit) is on. The loop runs in phases of ``phase_steps`` iterations; between
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
     the macro surface are drawn by the exact float64 inversion on just those lanes. Directions
@@ -302,6 +332,11 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     maxw = dr.opaque(U, _MAX_WALK)
     scene, faces, vnorm, fnorm = fs.scene, fs.faces, fs.normals, fs.face_normals
     distr = mi.MicrofacetDistribution(mi.MicrofacetType.Beckmann, alpha_o, True) if rough else None
+    split = int(split)
+    if split and not z_inv:
+        raise ValueError("splitting needs an extruded fiber (no cuticle scales)")
+    outer, outer_convex = fs.outer, bool(mesh.outer_convex)
+    inv_k = dr.opaque(F, 1.0 / max(split, 1))
 
     # Photon i of stream mix: the stream PCG32(size, mix, mix >> 1) gives its lane i.
     rng = mi.PCG32(size=n)
@@ -346,32 +381,75 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             del st[k]
     if qmc:
         st["q"] = V3(qs[1], qs[2], qs[3])
+    split_walks = bool(split) and rough
+    if split:
+        # Splitting at the outer surface: the photon's weight (w). Rough boundaries: need_s
+        # pauses a photon that hit the outer surface until its K walks are run between phases
+        # (split_walks_between_phases), from the hit (p0, d0: incoming direction, normals nm0 and ngs0,
+        # medium in0) with streams seeded by two numbers of its own (sa, sb).
+        st["w"] = dr.full(F, 1.0, n)
+        if split_walks:
+            st.update({"need_s": dr.full(B, False, n), "p0": dr.zeros(V3, n), "d0": dr.zeros(V3, n),
+                       "nm0": dr.zeros(V3, n), "ngs0": dr.zeros(V3, n), "in0": dr.full(B, False, n),
+                       "sa": dr.zeros(U, n), "sb": dr.zeros(U, n), "ns": dr.zeros(U, n)})
+    # Deposits of the splitting estimator: buffers of the current phase (replaced between phases).
+    dep: dict[str, Any] = {}
+
+    def settle(d: Any, ngs: Any, p: Any, above: Any) -> tuple[Any, Any]:
+        """Direction and offset point of a boundary result that leaves ``above`` (or below).
+
+        Reflected light must leave on the incident side of the flat triangle, transmitted light
+        on the other; a direction within the small angle between the smooth and the flat
+        normal (or a grazing microsurface exit) that disagrees is mirrored across the facet.
+        """
+        dg = dr.dot(d, ngs)
+        wrong = dr.select(above, dg <= 0.0, dg >= 0.0)
+        d = dr.select(wrong, V3(dr.normalize(d - ngs * (2.0 * dg))), d)
+        side = dr.select(above, 1.0, -1.0)
+        return d, V3(dr.fma(ngs, side * eps_o, p))
 
     def finish(s: dict, fin: Any) -> None:
         """End the boundary event of lanes ``fin``: set the medium, reconcile with the facet, offset."""
         above = s["above"]
-        ngs = s["ngs"]
-        d = s["d"]
-        dg = dr.dot(d, ngs)
-        # Reflected light must leave on the incident side of the flat triangle, transmitted light
-        # on the other; a direction within the small angle between the smooth and the flat
-        # normal (or a grazing microsurface exit) that disagrees is mirrored across the facet.
-        wrong = dr.select(above, dg <= 0.0, dg >= 0.0)
-        d = dr.select(fin & wrong, V3(dr.normalize(d - ngs * (2.0 * dg))), d)
-        side = dr.select(above, 1.0, -1.0)
-        s["d"] = d
-        s["p"] = dr.select(fin, V3(dr.fma(ngs, side * eps_o, s["p"])), s["p"])
+        d, p = settle(s["d"], s["ngs"], s["p"], above)
+        s["d"] = dr.select(fin, d, s["d"])
+        s["p"] = dr.select(fin, p, s["p"])
         s["inside"] = dr.select(fin & ~above, ~s["inside"], s["inside"])
         s["walking"] = s["walking"] & ~fin
 
-    def fresnel_event(wi: Any, m: Any, into_mat: Any, u: Any) -> tuple[Any, Any]:
-        """Reflect or refract ``wi`` (pointing away from the surface) about ``m``; Fresnel decides."""
+    def escapes(p: Any, d: Any, test: Any, rng: Any) -> Any:
+        """Lanes ``test`` (outside the fiber at ``p``, leaving along ``d``) that never meet it again."""
+        if outer_convex:
+            return test           # a convex outer surface cannot be met again
+        lxy = dr.sqrt(dr.fma(d.x, d.x, d.y * d.y))
+        lxy_s = dr.maximum(lxy, 1e-30)
+        zr = (rng.next_float32() - 0.5) * zs_o
+        ray = mi.Ray3f(mi.Point3f(p.x, p.y, zr), V3(d.x / lxy_s, d.y / lxy_s, 0.0))
+        pi = scene.ray_intersect_preliminary(ray, coherent=False, active=test & (lxy > 1e-7))
+        return test & ~(pi.is_valid() & (lxy > 1e-7))
+
+    def deposit(s: dict, mask: Any, d: Any, w: Any) -> None:
+        """Record an exit of weight ``w`` that leaves the fiber for good (lanes ``mask``)."""
+        slot = dr.scatter_inc(dep["count"], U(0), mask)
+        for k, v in (("dx", d.x), ("dy", d.y), ("dz", d.z), ("L", s["L"]), ("w", F(w))):
+            dr.scatter(dep[k], v, slot, mask)
+        dr.scatter(dep["lane"], s["idx"], slot, mask)
+        dr.scatter(dep["bounces"], s["bounces"], slot, mask)
+
+
+    def fresnel_branches(wi: Any, m: Any, into_mat: Any) -> tuple[Any, Any, Any]:
+        """Fresnel reflectance and the reflected and refracted directions of ``wi`` about ``m``."""
         cos_i = dr.clip(dr.dot(wi, m), 0.0, 1.0)
         rel = dr.select(into_mat, eta_o, inv_eta_o)
         F_r, cos_t, _, eta_ti = mi.fresnel(cos_i, rel)
-        refl = u < F_r
         wo_r = m * (2.0 * cos_i) - wi
         wo_t = m * dr.fma(cos_i, eta_ti, cos_t) - wi * eta_ti
+        return F_r, wo_r, wo_t
+
+    def fresnel_event(wi: Any, m: Any, into_mat: Any, u: Any) -> tuple[Any, Any]:
+        """Reflect or refract ``wi`` (pointing away from the surface) about ``m``; Fresnel decides."""
+        F_r, wo_r, wo_t = fresnel_branches(wi, m, into_mat)
+        refl = u < F_r
         return V3(dr.normalize(dr.select(refl, wo_r, wo_t))), refl
 
     def local_wi(s: dict) -> tuple[Any, Any, Any]:
@@ -380,8 +458,37 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         sg = dr.select(s["above"], 1.0, -1.0)
         return frame, sg, -(V3(frame.to_local(s["d"])) * sg)
 
+    def split_smooth(s: dict, hit: Any, d: Any, nm: Any, inside: Any, u: Any, rng: Any) -> tuple[Any, Any, Any]:
+        """Splitting at a smooth outer boundary (lanes ``hit``): the K walks are K Fresnel
+        choices between two fixed directions, so they are drawn at once.
+
+        Of the K, n choose the branch that ends outside (reflected from outside, transmitted
+        from inside). If that branch leaves the fiber for good it is deposited with weight
+        w n / K and the photon continues along the other branch with probability (K - n) / K;
+        if it meets the fiber again, every result continues and one Fresnel choice picks the
+        branch. Returns the continuing branch's direction, whether it is the reflected one,
+        and the lanes that end.
+        """
+        F_r, wo_r, wo_t = fresnel_branches(-d, nm, ~inside)
+        wo_r, wo_t = V3(dr.normalize(wo_r)), V3(dr.normalize(wo_t))
+        p_out = dr.select(inside, 1.0 - F_r, F_r)                  # the branch that ends outside
+        n_out = F(0.0)
+        for _ in range(split):
+            n_out += dr.select(rng.next_float32() < p_out, 1.0, 0.0)
+        d_out = dr.select(inside, wo_t, wo_r)
+        d_set, p_set = settle(d_out, s["ngs"], s["p"], ~inside)
+        # A branch that cannot happen (total internal reflection) cannot meet the fiber either.
+        esc = escapes(p_set, d_set, hit & (p_out > 0.0), rng) | (hit & (p_out <= 0.0))
+        deposit(s, esc & (n_out > 0.0), d_set, s["w"] * n_out * inv_k)
+        refl = dr.select(esc, inside, u < F_r)                     # esc: the branch that stays
+        ended = esc & (rng.next_float32() * F(split) < n_out)
+        s["w"] = dr.select(ended, 0.0, s["w"])
+        return V3(dr.select(refl, wo_r, wo_t)), refl, ended
+
     def cond(s: dict) -> Any:
         c = s["active"] & (s["steps"] < s_lim)
+        if split_walks:
+            c = c & ~s["need_s"]
         return c & ~s["need_m"] if rough else c
 
     def body(s: dict) -> tuple[dict]:
@@ -496,15 +603,30 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["nm"] = dr.select(hit, nm, s["nm"])
         s["above"] = s["above"] | hit
         s["bounces"] = U(s["bounces"] + dr.select(hit, 1, 0))
+        oh = B(False)
+        if split:
+            # A hit on the outer surface is split.
+            oh = hit & (dr.gather(U, outer, pi.prim_index, hit) != 0)
+        if split_walks:
+            # Rough: pause until the K walks are run between phases (the first _SPLIT_HITS).
+            oh = oh & (s["ns"] < _SPLIT_HITS)
+            s["ns"] = U(s["ns"] + dr.select(oh, 1, 0))
+            s["need_s"] = s["need_s"] | oh
+            for k, v in (("p0", p_hit), ("d0", d), ("nm0", nm), ("ngs0", ngs), ("in0", inside)):
+                s[k] = dr.select(oh, v, s[k])
+            s["sa"] = dr.select(oh, rng.next_uint32(), s["sa"])
+            s["sb"] = dr.select(oh, rng.next_uint32(), s["sb"])
+            hit = hit & ~oh
         s["walking"] = s["walking"] | hit
         if rough:
+            start = hit
             s["wsteps"] = dr.select(hit, 0, s["wsteps"])
             # The walk starts above every microfacet; the first hit height follows the masking.
             frame, sg, wi = local_wi(s)
             _, hn = _height_step(dr, F, -wi, F(1.0), rng.next_float32(), alpha_o)
-            s["h"] = dr.select(hit, hn, s["h"])
+            s["h"] = dr.select(start, hn, s["h"])
             # 4. One microfacet event for new and continuing walks.
-            sc = hit | cont
+            sc = start | cont
             u1, u2, u3 = rng.next_float32(), rng.next_float32(), rng.next_float32()
             if qmc:
                 # The first boundary event takes its normal and Fresnel choice from the point.
@@ -526,7 +648,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             u = rng.next_float32()
             if qmc:
                 u = dr.select(hit & (s["bounces"] == 1), s["q"].x, u)
-            wo, refl = fresnel_event(-d, nm, ~inside, u)
+            if split:
+                wo, refl, ended = split_smooth(s, oh, d, nm, inside, u, rng)
+                wo_p, refl_p = fresnel_event(-d, nm, ~inside, u)
+                wo, refl = dr.select(oh, wo, wo_p), dr.select(oh, refl, refl_p)
+                active = active & ~ended
+            else:
+                wo, refl = fresnel_event(-d, nm, ~inside, u)
             s["d"] = dr.select(hit, wo, s["d"])
             s["above"] = dr.select(hit, refl, s["above"])
             finish(s, hit)
@@ -542,6 +670,125 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["rng"] = rng
         return (s,)
 
+    def split_walks_between_phases(st: dict, need: Any, deposits: dict[str, list[np.ndarray]]) -> None:
+        """Run the K microsurface walks of every photon paused at the outer surface (lanes ``need``).
+
+        The walks run in their own loop, K lanes per photon, without ray casts (the main loop
+        would run its whole body, ray cast included, for every step of every walk). Each result
+        that leaves the fiber for good is deposited with weight w / K; the photon continues with
+        one of the others, chosen uniformly, with probability (their number) / K, else it ends.
+        Photons are taken ``_SPLIT_CHUNK`` walks at a time (bounded memory).
+        """
+        step = max(1, _SPLIT_CHUNK // split)
+        total = dr.width(need)
+        for c0 in range(0, total, step):
+            part = need if total <= step else dr.gather(U, need, dr.arange(U, c0, min(c0 + step, total)))
+            split_chunk(st, part, deposits)
+        dr.scatter(st["need_s"], False, need)
+        dr.eval(st)
+
+    def split_chunk(st: dict, need: Any, deposits: dict[str, list[np.ndarray]]) -> None:
+        """The K walks of the photons in lanes ``need`` (see :func:`split_walks_between_phases`)."""
+        K = split
+        m = dr.width(need)
+        M = m * K
+        r = dr.arange(U, M)
+        own = r // K                     # the photon of each walk, 0..m-1
+        lane = dr.gather(U, need, own)   # its lane in the state
+        g = {k: dr.gather(type(st[k]), st[k], lane) for k in ("p0", "d0", "nm0", "ngs0", "in0", "L", "bounces",
+                                                             "w", "idx", "sa", "sb")}
+        # One stream per walk: seeded by the photon's two numbers and the walk's number.
+        key = (mi.UInt64(g["sa"]) << 32) | mi.UInt64(g["sb"])
+        j = mi.UInt64(r - own * K)
+        wr = mi.PCG32(size=M)
+        wr.seed(initstate=key + j * 0x9E3779B97F4A7C15, initseq=key ^ (j + 1))
+        frame = mi.Frame3f(g["nm0"])
+        in0 = g["in0"]
+        # Local travel direction v (z: the macro normal on the photon's side); the walk starts
+        # above every microfacet, at a first height that follows the masking.
+        v = V3(frame.to_local(g["d0"]))
+        _, h = _height_step(dr, F, v, F(1.0), wr.next_float32(), alpha_o)
+        ws = {"v": v, "h": F(h), "above": dr.full(B, True, M), "wsteps": dr.zeros(U, M),
+              "done": dr.full(B, False, M), "need_m": dr.full(B, False, M), "has_m": dr.full(B, False, M),
+              "mq": dr.zeros(V3, M), "forced": dr.zeros(U, M), "rng": wr}
+
+        def wcond(w: dict) -> Any:
+            return ~w["done"] & ~w["need_m"]
+
+        def wbody(w: dict) -> tuple[dict]:
+            w = dict(w)
+            rng_w = w["rng"]
+            # One microfacet event (as in the main loop's step 4), then the height test (step 1).
+            sg = dr.select(w["above"], 1.0, -1.0)
+            wi = -(w["v"] * sg)
+            u1, u2, u3 = rng_w.next_float32(), rng_w.next_float32(), rng_w.next_float32()
+            below = ~w["has_m"] & (wi.z < 1e-3)
+            m_fast, _ = distr.sample(wi, mi.Point2f(u1, u2))
+            mn = dr.select(w["has_m"], w["mq"], V3(m_fast))
+            wo, refl = fresnel_event(wi, mn, in0 ^ w["above"], u3)
+            go = ~below
+            w["v"] = dr.select(go, V3(wo * sg), w["v"])
+            w["above"] = dr.select(go & ~refl, ~w["above"], w["above"])
+            w["wsteps"] = U(w["wsteps"] + dr.select(go, 1, 0))
+            w["has_m"] = w["has_m"] & ~go
+            w["need_m"] = below
+            w["mq"] = dr.select(below, V3(u1, u2, 0.0), w["mq"])
+            sg2 = dr.select(w["above"], 1.0, -1.0)
+            leave, hn = _height_step(dr, F, V3(w["v"] * sg2), w["h"] * sg2, rng_w.next_float32(), alpha_o)
+            w["h"] = dr.select(go, F(hn * sg2), w["h"])
+            forced = go & ~leave & (w["wsteps"] >= maxw)
+            w["forced"] = U(w["forced"] + dr.select(forced, 1, 0))
+            w["above"] = dr.select(forced, w["v"].z > 0.0, w["above"])
+            w["done"] = w["done"] | (go & (leave | forced))
+            w["rng"] = rng_w
+            return (w,)
+
+        while True:
+            (ws,) = dr.while_loop((ws,), wcond, wbody, mode="symbolic", label="split walks")
+            dr.eval(ws)
+            pend = dr.compress(ws["need_m"])
+            if len(pend) == 0:
+                break
+            # Microfacet normals seen from below the macro surface: exact, on just those walks.
+            sub = {k: dr.gather(type(ws[k]), ws[k], pend) for k in ("v", "above", "mq")}
+            wi = -(sub["v"] * dr.select(sub["above"], 1.0, -1.0))
+            dr.scatter(ws["mq"], _vndf_below(mi, dr, V3(wi), sub["mq"].x, sub["mq"].y, alpha_o), pend)
+            dr.scatter(ws["has_m"], True, pend)
+            dr.scatter(ws["need_m"], False, pend)
+            dr.eval(ws)
+        wr = ws["rng"]                   # the walks' streams, past the numbers they used
+        above = ws["above"]
+        d_out, p_out = settle(V3(frame.to_world(ws["v"])), g["ngs0"], g["p0"], above)
+        inside = in0 ^ ~above
+        esc = escapes(p_out, d_out, ~inside, wr)
+        # Deposits: the walks that leave the fiber for good, w / K each.
+        dsel = dr.compress(esc)
+        if len(dsel) > 0:
+            for k, val in (("lane", g["idx"]), ("dx", d_out.x), ("dy", d_out.y), ("dz", d_out.z), ("L", g["L"]),
+                           ("w", g["w"] * inv_k), ("bounces", g["bounces"])):
+                deposits[k].append(np.asarray(dr.gather(type(val), val, dsel).numpy()))
+        # The continuing result: the one with the largest random key among the photon's others.
+        keep = ~esc
+        keyf = dr.select(keep, wr.next_float32(), -1.0)
+        best = dr.full(F, -1.0, m)
+        dr.scatter_reduce(dr.ReduceOp.Max, best, keyf, own)
+        nc = dr.zeros(U, m)
+        dr.scatter_reduce(dr.ReduceOp.Add, nc, dr.select(keep, U(1), U(0)), own)
+        chosen = keep & (keyf == dr.gather(F, best, own))
+        tgt = dr.gather(U, need, own)
+        dr.scatter(st["p"], p_out, tgt, chosen)
+        dr.scatter(st["d"], d_out, tgt, chosen)
+        dr.scatter(st["inside"], inside, tgt, chosen)
+        dr.scatter_reduce(dr.ReduceOp.Add, st["forced"], ws["forced"], tgt)
+        # Continue with probability nc / K (Russian roulette), at the photon's weight.
+        ur = mi.PCG32(size=m)
+        kk = dr.gather(mi.UInt64, key, dr.arange(U, m) * K)
+        ur.seed(initstate=kk ^ 0x5851F42D4C957F2D, initseq=kk + 0x14057B7EF767814F)
+        alive = ur.next_float32() * float(K) < F(nc)
+        dr.scatter(st["active"], alive, need, ~alive)
+        dr.scatter(st["w"], F(0.0), need, ~alive)
+        dr.eval(st)
+
     if mode not in ("symbolic", "wavefront"):
         raise ValueError(f"unknown loop mode {mode!r}")
     out_d = dr.zeros(V3, n)
@@ -550,16 +797,31 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     out_cut = dr.full(B, False, n)
     out_b = dr.zeros(U, n)
     counters = {k: dr.zeros(U, n) for k in ("leaks", "forced")}   # "forced": rough walks only
+    out_w = dr.full(F, 1.0, n)
+    deposits: dict[str, list[np.ndarray]] = {k: [] for k in ("lane", "dx", "dy", "dz", "L", "w", "bounces")}
     limit = 0
     while True:
         limit += int(phase_steps)
         s_lim = dr.opaque(U, limit)
+        if split and not rough:
+            # A lane deposits at most once per iteration: room for every iteration left to it.
+            room = int(dr.sum(dr.select(st["active"], limit - dr.minimum(st["steps"], limit), 0))[0]) + 1
+            dep.update({k: dr.empty(F, room) for k in ("dx", "dy", "dz", "L", "w")})
+            dep.update({"lane": dr.empty(U, room), "bounces": dr.empty(U, room), "count": dr.zeros(U, 1)})
         if mode == "symbolic":
             (st,) = dr.while_loop((st,), cond, body, mode="symbolic", label="photon")
         else:
             (st,) = dr.while_loop((st,), cond, body, mode="evaluated",
                                   compress=dr.width(st["active"]) > 1, label="photon")
         dr.eval(st)                 # one launch for every output of the loop
+        if split and not rough:
+            used = int(dep["count"][0])
+            if used > room:
+                raise RuntimeError(f"splitting deposited {used} exits into room for {room}")
+            if used:
+                sel = dr.arange(U, used)
+                for k, v in deposits.items():
+                    v.append(np.asarray(dr.gather(type(dep[k]), dep[k], sel).numpy()))
         if rough:
             # Microfacet normals seen from below the macro surface: exact, on just those lanes.
             need = dr.compress(st["need_m"])
@@ -571,6 +833,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 dr.scatter(st["has_m"], True, need)
                 dr.scatter(st["need_m"], False, need)
                 dr.eval(st)
+        if split_walks:
+            need = dr.compress(st["need_s"])
+            if len(need) > 0:
+                split_walks_between_phases(st, need, deposits)
         act = st["active"]
         n_act = int(dr.count(act)[0])
         size = dr.width(act)
@@ -581,6 +847,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             dr.scatter(out_hit, st["hit_any"], st["idx"])
             dr.scatter(out_cut, st["cut"], st["idx"])
             dr.scatter(out_b, st["bounces"], st["idx"])
+            if split:
+                dr.scatter(out_w, st["w"], st["idx"])
             for k, out in counters.items():
                 if k in st:
                     dr.scatter(out, st[k], st["idx"])
@@ -588,9 +856,15 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 break
             st = _gather_state(mi, dr, st, dr.compress(act))
             dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters, st)
-    dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters)
+    dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters, out_w)
     dn = np.asarray(out_d.numpy())
+    extra: dict[str, Any] = {}
+    if split:
+        extra["w"] = np.asarray(out_w.numpy())
+        extra["deposits"] = {k: (np.concatenate(v) if v else np.zeros(0, np.uint32 if k in ("lane", "bounces")
+                                                                        else np.float32)) for k, v in deposits.items()}
     return {
+        **extra,
         "d": dn.T if dn.ndim == 2 and dn.shape[0] == 3 and dn.shape[1] == n else dn,
         "L": np.asarray(out_L.numpy()),
         "hit_any": np.asarray(out_hit.numpy()).astype(bool),
@@ -615,6 +889,7 @@ def trace(
     mode: str = "symbolic",
     max_steps: int | None = None,
     sampler: str = "independent",
+    split: int = 0,
 ) -> TraceResult:
     """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
 
@@ -632,11 +907,16 @@ def trace(
     first boundary event's numbers from an Owen-scrambled Sobol point per photon (one
     scramble per stream, :mod:`usdfiber.bake.sampling`): the photons of a stream are
     stratified over those dimensions; ``"independent"`` (default) uses PCG32 numbers only.
-    Many directions are faster together: :func:`trace_many`.
+    ``split=K`` (extruded fibers) splits every hit of the outer surface into K independent
+    microsurface walks from the same state: each result that leaves the fiber for good is an
+    exit of weight w / K; the photon continues with one of the other results, chosen
+    uniformly, with probability (their number) / K (so paths are no longer than without
+    splitting). At a smooth boundary the K walks are K Fresnel choices. The result then
+    has several weighted exits per photon (``TraceResult.weight``). Many directions are faster together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
-                      max_steps=max_steps, sampler=sampler)[0]
+                      max_steps=max_steps, sampler=sampler, split=split)[0]
 
 
 def trace_many(
@@ -653,6 +933,7 @@ def trace_many(
     mode: str = "symbolic",
     max_steps: int | None = None,
     sampler: str = "independent",
+    split: int = 0,
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -687,6 +968,10 @@ def trace_many(
         raise ValueError("beta_deg must be in [0, 90)")
     if sampler not in ("independent", "sobol"):
         raise ValueError(f"sampler must be 'independent' or 'sobol', got {sampler!r}")
+    if not (isinstance(split, (int, np.integer)) and 0 <= int(split) <= MAX_SPLIT_WALKS):
+        raise ValueError(f"split must be an integer from 0 (off) to {MAX_SPLIT_WALKS}, got {split!r}")
+    if split and not fs.mesh.z_invariant:
+        raise ValueError("split needs an extruded fiber: the escape test of fibers with cuticle scales is not built")
     if sampler == "sobol" and int(counts.max()) > 1 << 32:
         raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
@@ -714,7 +999,7 @@ def trace_many(
     t0 = time.perf_counter()
     starts = np.concatenate([[0], np.cumsum(counts)])
     total = int(starts[-1])
-    kept: dict[str, list[np.ndarray]] = {"beam": [], "d": [], "L": [], "cut": [], "bounces": []}
+    kept: dict[str, list[np.ndarray]] = {"beam": [], "d": [], "L": [], "cut": [], "bounces": [], "w": []}
     n_hit = np.zeros(nd, dtype=np.int64)
     n_leaks = np.zeros(nd, dtype=np.int64)
     n_forced = np.zeros(nd, dtype=np.int64)
@@ -724,19 +1009,35 @@ def trace_many(
         beam = (np.searchsorted(starts, lane, side="right") - 1).astype(np.uint32)
         launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
-                           max_steps=int(max_steps), mode=mode)
+                           max_steps=int(max_steps), mode=mode, split=int(split))
         hit = out["hit_any"]
         n_hit += np.bincount(beam, weights=hit, minlength=nd).astype(np.int64)
         n_leaks += np.bincount(beam, weights=out["leaks"], minlength=nd).astype(np.int64)
         n_forced += np.bincount(beam, weights=out["forced"], minlength=nd).astype(np.int64)
+        if split:
+            # Photons whose path ended inside a split left all their weight in deposits.
+            hit = hit & ((out["w"] > 0.0) | out["cut"])
         kept["beam"].append(beam[hit])
         kept["d"].append(out["d"][hit])
         kept["L"].append(out["L"][hit])
         kept["cut"].append(out["cut"][hit])
         kept["bounces"].append(out["bounces"][hit])
+        kept["w"].append(out["w"][hit] if split else np.ones(int(hit.sum()), np.float32))
+        if split:
+            dp = out["deposits"]
+            kept["beam"].append(beam[dp["lane"]])
+            kept["d"].append(np.stack([dp["dx"], dp["dy"], dp["dz"]], axis=-1))
+            kept["L"].append(dp["L"])
+            kept["cut"].append(np.zeros(len(dp["L"]), bool))
+            kept["bounces"].append(dp["bounces"])
+            kept["w"].append(dp["w"])
     dr.sync_thread()
     seconds = time.perf_counter() - t0
     cat = {k: np.concatenate(v) for k, v in kept.items()}
+    if split:
+        # Deposits follow each batch's photons: bring each direction's rows together.
+        order = np.argsort(cat["beam"], kind="stable")
+        cat = {k: v[order] for k, v in cat.items()}
     # Lanes are in direction order, so each direction's photons are one contiguous run.
     cuts = np.searchsorted(cat["beam"], np.arange(nd + 1), side="left")
     results = []
@@ -757,5 +1058,6 @@ def trace_many(
             beta_deg=float(beta_deg),
             seconds=seconds * float(counts[j]) / total,
             extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j])},
+            weight=cat["w"][r].astype(np.float32) if split else None,
         ))
     return results

@@ -88,4 +88,4 @@ def add_memory_budget_option(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--memory-budget", type=memory_size, default=None, metavar="SIZE",
                         help=f"memory the geometry and tables may use, e.g. 8G (default ${BUDGET_ENV}, "
-                             f"else {DEFAULT_FRACTION:.0%} of the machine's memory)")
+                             f"else {DEFAULT_FRACTION * 100:.0f}%% of the machine's memory)")  # %% : argparse formats help

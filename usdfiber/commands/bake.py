@@ -16,6 +16,11 @@ The cache is ``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else ``~/.cache/usdf
 A progress bar with the time left is drawn on stderr; for every table one line goes to
 stdout: its cache key, file, photons, error estimate (relative L2 of p), time and status.
 
+Before baking, each missing table's cost is estimated from a quick probe of its fiber on this
+machine (``usdfiber.bake.cost``: time, size on disk, peak memory) and printed on stderr;
+``--dry-run`` prints it on stdout for every table to bake, with the totals. A bake estimated
+longer than ``--long-bake`` seconds (default 600) says so in a warning, with cheaper settings.
+
 Exit status: 0 done, 2 bad input (one line on stderr), 130 interrupted (finished
 directions are kept and resumed next time).
 """
@@ -59,8 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(e.g. 0.01)")
     p.add_argument("--max-photons", type=positive_int, default=None, metavar="N",
                    help="cap per direction with --target-error (default 64000000)")
-    p.add_argument("--resolution", type=positive_float, default=2.0, metavar="DEG",
-                   help="angular bin size in degrees, dividing 90 (default 2, the paper's)")
+    p.add_argument("--resolution", type=_resolution, default=2.0, metavar="DEG",
+                   help="angular bin size in degrees, dividing 90 (default 2, the paper's), or 'auto': "
+                        "the bins and incoming nodes each fiber's band limit allows against 2 degrees "
+                        "(usdfiber.bake.band_limit)")
     p.add_argument("--batches", type=positive_int, default=None, metavar="B",
                    help="independent batches per direction for the error estimate (default 8)")
     p.add_argument("--max-bounces", type=positive_int, default=None, metavar="N",
@@ -74,8 +81,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                    help="tables baked at once in separate processes (default 1)")
     p.add_argument("--dry-run", action="store_true",
-                   help="list the tables (key, cached or not) without baking")
+                   help="list the tables (key, cached or not) and the estimated time and size of "
+                        "those to bake, without baking")
+    p.add_argument("--long-bake", type=positive_float, default=None, metavar="SECONDS",
+                   help="warn before a bake estimated to take longer than this (default 600)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--plot", action="store_true",
+                   help="write each table's error-against-photons figure next to it (KEY.errors.png; "
+                        "not with --scheduler or --shard)")
     add_memory_budget_option(p)
     from usdfiber.farm.command import add_bake_options
 
@@ -84,11 +97,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     one_line_errors(p)
 
 
+def _resolution(text: str) -> float | str:
+    """``--resolution``: a positive number of degrees or ``auto``."""
+    return "auto" if text.strip().lower() == "auto" else positive_float(text)
+
+
 def _settings(args: argparse.Namespace):
     from usdfiber.bake.settings import BakeError, BakeSettings
     from usdfiber.cli import UsageError
 
-    kw: dict[str, Any] = {"resolution_deg": args.resolution, "seed": args.seed, "incoming": args.incoming}
+    kw: dict[str, Any] = {"seed": args.seed, "incoming": args.incoming}
+    if args.resolution == "auto":
+        kw["auto_resolution"] = True
+    else:
+        kw["resolution_deg"] = args.resolution
     if args.photons is not None:
         kw["photons"] = args.photons
     if args.target_error is not None:
@@ -177,6 +199,52 @@ def _line(res, req) -> str:
             f"time={res.seconds:.1f}s  {status}  [{req.label}: {users}]")
 
 
+def _write_error_plot(res) -> str:
+    """``bake --plot``: the table's error against photons (usdfiber.table_plot) beside it."""
+    from pathlib import Path
+
+    from usdfiber import table_plot
+    from usdfiber.cli import UsageError
+
+    out = Path(res.path).with_suffix(".errors.png")
+    try:
+        table_plot.save(table_plot.error_against_photons(res.table), out)
+    except (ValueError, OSError) as exc:
+        raise UsageError(f"cannot write {out}: {getattr(exc, 'strerror', None) or exc}") from None
+    return f"wrote {out}"
+
+
+def _estimate(req, settings, cache):
+    """The cost of baking ``req`` (usdfiber.bake.cost), probing its fiber if not done before;
+    a fiber that cannot be traced is the bake's error (BakeError, one line)."""
+    from usdfiber.bake.cost import estimate_request
+
+    return estimate_request(req, settings, cache)
+
+
+def _totals(estimates: list) -> str:
+    """``", N to bake: about T, S on disk"`` for the estimates (empty when there are none)."""
+    if not estimates:
+        return ""
+    from usdfiber.bake.cost import format_seconds, total
+    from usdfiber.memory_budget import format_bytes
+
+    t = total(estimates)
+    return (f", {t['tables']} to bake: about {format_seconds(t['seconds'])} on this machine, "
+            f"{format_bytes(t['disk_bytes'])} on disk")
+
+
+def _warn_if_long(estimates: list, settings, args: argparse.Namespace) -> None:
+    """One warning line when the bake is estimated longer than ``--long-bake`` seconds."""
+    from usdfiber.bake.cost import LONG_BAKE_SECONDS, cheaper_hint, format_seconds, total
+
+    limit = args.long_bake if args.long_bake is not None else LONG_BAKE_SECONDS
+    seconds = total(estimates)["seconds"]
+    if estimates and seconds > limit:
+        print(f"usdfiber: warning: this bake is estimated at {format_seconds(seconds)} on this machine "
+              f"(over {format_seconds(limit)}); for a cheaper table: {cheaper_hint(settings)}", file=sys.stderr)
+
+
 def _worker_init(threads: int) -> None:
     try:
         from usdfiber.backend import mitsuba
@@ -230,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
         together = min(args.jobs, len(jobs))
         budget.require(together * settings.table_bytes(),
                        f"baking {together} table{'s' if together > 1 else ''} at a time at --resolution "
-                       f"{settings.resolution_deg:g}")
+                       f"{'auto' if settings.auto_resolution else format(settings.resolution_deg, 'g')}")
 
     def show_warning(message, category, filename, lineno, file=None, line=None):
         print(f"usdfiber: warning: {message}", file=sys.stderr)
@@ -238,15 +306,37 @@ def run(args: argparse.Namespace) -> int:
     warnings.showwarning = show_warning  # one line per warning, no source location
 
     if args.dry_run:
+        estimates = []
         for key, req in jobs:
             serving = cache.find_serving(req, settings)
             state = "to bake" if serving is None else ("cached" if serving == key else f"served by {serving}")
+            if serving is None:
+                try:
+                    est = _estimate(req, settings, cache)
+                except BakeError as exc:
+                    print(f"usdfiber: error: {exc}", file=sys.stderr)
+                    return 1
+                estimates.append(est)
+                state += f": {est.describe()}"
             print(f"{key}  {cache.table_path(key)}  {state}  [{req.label}: {', '.join(req.prims[:3])}]")
-        print(f"{len(jobs)} table{'s' if len(jobs) != 1 else ''}")
+        print(f"{len(jobs)} table{'s' if len(jobs) != 1 else ''}" + _totals(estimates))
+        _warn_if_long(estimates, settings, args)
         return 0
     if not jobs:
         print("nothing to bake: no fiber prims need tables")
         return 0
+    # What the bake will cost, before it starts (the tables no cached table serves).
+    try:
+        estimates = [_estimate(req, settings, cache) for _, req in jobs
+                     if cache.find_serving(req, settings) is None]
+    except BakeError as exc:   # a profile that cannot be traced
+        print(f"usdfiber: error: {exc}", file=sys.stderr)
+        return 1
+    for est in estimates:
+        print(f"estimate: {est.label}: {est.describe()}", file=sys.stderr)
+    if len(estimates) > 1:
+        print(f"estimate: {len(jobs)} tables{_totals(estimates)}", file=sys.stderr)
+    _warn_if_long(estimates, settings, args)
     try:
         cache.root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -254,6 +344,11 @@ def run(args: argparse.Namespace) -> int:
     from usdfiber.farm.command import run_bake, wants_farm
 
     if wants_farm(args):
+        if args.plot:
+            from usdfiber.cli import UsageError
+
+            raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
+                             "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
         return run_bake(args, reqs, settings, cache)
 
     from tqdm import tqdm
@@ -272,6 +367,8 @@ def run(args: argparse.Namespace) -> int:
                     for m in msgs:
                         print(f"usdfiber: warning: {m}", file=sys.stderr)
                     bar.write(_line(res, order[key]), file=sys.stdout)
+                    if args.plot:
+                        bar.write(_write_error_plot(res), file=sys.stdout)
                     bar.update(1)
             except BakeError as exc:
                 bar.close()
@@ -305,4 +402,6 @@ def run(args: argparse.Namespace) -> int:
             if bar is not None:
                 bar.close()
         print(_line(res, req), flush=True)
+        if args.plot:
+            print(_write_error_plot(res), flush=True)
     return 0

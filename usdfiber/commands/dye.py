@@ -14,7 +14,8 @@ is an error that names the nearest reachable colour (exit 1).
 
 ``--fiber PRESET`` takes the preset's fiber (``usdfiber presets``), ``--stage``/``--prim`` a
 fiber or yarn prim (a yarn's fibers: light scattered between them deepens the yarn's colour
-beyond this). ``--write`` authors the dye on the prim and saves the stage; ``--spectral``
+beyond this; on the Table 3 threads the yarn's own albedo is 0.25-0.58 of its fibers' per
+channel, ``bench/REPORT.md`` "Fitted models"). ``--write`` authors the dye on the prim and saves the stage; ``--spectral``
 authors it as a spectral extinction curve whose Rec.709 reduction is the matched extinction.
 Tables missing from the cache (``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else
 ``~/.cache/usdfiber``) are baked (``--bake-resolution`` 6 degrees, ``--bake-photons`` 100000).

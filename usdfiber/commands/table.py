@@ -4,21 +4,28 @@
 resolution and symmetries, photons, error estimate, absorption levels, storage and an
 albedo summary. ``--json`` prints the header and the summary as JSON.
 
-``plot`` writes one slice of the BCSDF like the paper's Figure 3: for the light direction
-(``--theta-i``, ``--phi-i``, degrees, fiber rotated by ``--psi``), the scattered intensity
-``Lambda(omega_i) p(omega_o | omega_i)`` (per steradian, luminance of the linear Rec.709
-channels when dyed) in false colour on a log10 scale over ``--decades`` decades; theta_o
-runs from +90 (top) to -90 degrees (bottom), phi_o from 0 (left) to 360 degrees (right).
-Undyed by default; ``--dye NAME`` (a dye preset or colour of ``usdfiber presets``) with
-``--depth-of-shade`` (percent, default 0.1 as in Figure 3), ``--density`` and
-``--diameter`` (defaults: the fiber recorded in the table), or ``--mu-a R G B`` (1/um).
-The image is written through OpenImageIO (format from the extension: .png, .exr, ...).
+``plot`` writes a labelled matplotlib figure (:mod:`usdfiber.table_plot`; PNG, PDF or SVG
+by extension), chosen by ``--figure``:
 
-``--figure`` writes a labelled matplotlib figure instead (:mod:`usdfiber.table_plot`; PNG,
-PDF or SVG by extension): ``grid``, the paper's Figure 3 layout (rows: each ``--theta-i``,
-columns: each ``--psi``; log radiance with a colour bar, the specular cone dashed);
-``longitudinal``, Figure 14-style curves over theta_o, one per ``--theta-i``; ``errors``,
-the bake's error estimate per direction against its photons.
+* ``grid`` (the default): the paper's Figure 3 layout, rows: each ``--theta-i`` (default
+  -60 -30 0), columns: each ``--psi`` (default 0 60 120), the scattered intensity
+  ``Lambda(omega_i) p(omega_o | omega_i)`` (per steradian, luminance of the linear Rec.709
+  channels when dyed) on a log scale over ``--decades`` decades with a colour bar, the
+  specular cone dashed;
+* ``longitudinal``: Figure 14-style curves over theta_o, one per ``--theta-i``;
+* ``errors``: the bake's error estimate per direction against its photons;
+* ``fit``: Figure 12-style slices of the table against the standard models fitted to it
+  (Chiang et al. 2016 and Khungurn et al. 2015, :mod:`usdfiber.fit`; the fits are cached
+  beside the table), one row per ``--theta-i``, each model's error over the sphere listed;
+* ``slice``: one raw false-colour slice (one pixel block per bin, ``--scale`` pixels) for the
+  light direction ``--theta-i``, ``--phi-i`` and rotation ``--psi``, through OpenImageIO
+  (any image format); theta_o runs from +90 (top) to -90 degrees (bottom), phi_o from 0
+  (left) to 360 degrees (right).
+
+Light azimuth ``--phi-i`` (default 0). Undyed by default; ``--dye NAME`` (a dye preset or
+colour of ``usdfiber presets``) with ``--depth-of-shade`` (percent, default 0.1 as in
+Figure 3), ``--density`` and ``--diameter`` (defaults: the fiber recorded in the table), or
+``--mu-a R G B`` (1/um).
 
 Exit status: 0 done, 2 bad input or an unreadable table (one line on stderr).
 """
@@ -33,6 +40,12 @@ from typing import Any
 import numpy as np
 
 from usdfiber.commands.arg_types import finite_float
+
+
+#: ``table plot --figure`` choices, and their default light longitudes (degrees).
+FIGURES = ("grid", "longitudinal", "errors", "fit", "slice")
+_THETA_I = {"grid": [-60.0, -30.0, 0.0], "longitudinal": [-60.0, -30.0, 0.0, 30.0], "errors": [0.0],
+            "fit": [-60.0, -30.0, 0.0]}
 
 
 def _nonneg(text: str) -> float:
@@ -65,16 +78,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     pi.add_argument("--json", action="store_true", help="print JSON")
     pi.set_defaults(func=run_inspect)
 
-    pp = tsub.add_parser("plot", help="write a false-colour log slice of the BCSDF (paper Fig. 3)",
+    pp = tsub.add_parser("plot", help="write a figure of the BCSDF (paper Fig. 3 grid by default; 12, 14)",
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     pp.add_argument("file", metavar="FILE")
-    pp.add_argument("--theta-i", type=finite_float, required=True, nargs="+", metavar="DEG",
-                    help="light longitude, degrees (several: the rows of --figure grid, the curves of longitudinal)")
-    pp.add_argument("--phi-i", type=finite_float, required=True, metavar="DEG", help="light azimuth, degrees")
-    pp.add_argument("--psi", type=finite_float, default=[0.0], nargs="+", metavar="DEG",
-                    help="fiber rotation, degrees (several: the columns of --figure grid)")
-    pp.add_argument("--figure", choices=("grid", "longitudinal", "errors"), default=None,
-                    help="write a labelled figure (see above) instead of the raw false-colour slice")
+    pp.add_argument("--theta-i", type=finite_float, default=None, nargs="+", metavar="DEG",
+                    help="light longitude, degrees (several: the rows of grid and fit, the curves of longitudinal; "
+                         "one for slice)")
+    pp.add_argument("--phi-i", type=finite_float, default=0.0, metavar="DEG", help="light azimuth, degrees (default 0)")
+    pp.add_argument("--psi", type=finite_float, default=None, nargs="+", metavar="DEG",
+                    help="fiber rotation, degrees (several: the columns of grid; default 0 60 120, else 0)")
+    pp.add_argument("--figure", choices=FIGURES, default="grid",
+                    help="grid (default), longitudinal, errors, fit or slice (see above)")
     pp.add_argument("--dye", default=None, metavar="NAME", help="dye preset or colour")
     pp.add_argument("--depth-of-shade", type=_nonneg, default=0.1, metavar="PCT",
                     help="depth of shade in percent (default 0.1)")
@@ -223,6 +237,12 @@ def run_plot(args: argparse.Namespace) -> int:
     fiber = table.header.get("fiber") or {}
     if args.scale < 1 or args.scale > 64:
         raise UsageError(f"--scale must be 1 to 64 pixels per bin, got {args.scale}")
+    if args.theta_i is None:
+        if args.figure == "slice":
+            raise UsageError("--figure slice needs --theta-i (one light longitude, degrees)")
+        args.theta_i = _THETA_I[args.figure]
+    if args.psi is None:
+        args.psi = [0.0, 60.0, 120.0] if args.figure == "grid" else [0.0]
     for ti in args.theta_i:
         if abs(ti) > 90:
             raise UsageError(f"--theta-i must be within [-90, 90] degrees, got {ti:g}")
@@ -244,7 +264,7 @@ def run_plot(args: argparse.Namespace) -> int:
         mu_a = [mu_a_per_um(density, args.depth_of_shade, e) for e in eps]
     else:
         mu_a = [0.0, 0.0, 0.0]
-    if args.figure is not None:
+    if args.figure != "slice":
         return _write_figure(args, table, mu_a, diameter / table.baked_diameter_um)
     args.theta_i, args.psi = args.theta_i[0], args.psi[0]
     rec = table.recolour(mu_a, diameter / table.baked_diameter_um)
@@ -298,10 +318,14 @@ def _write_figure(args: argparse.Namespace, table: Any, mu_a: list[float], diame
         elif args.figure == "longitudinal":
             fig = table_plot.longitudinal_curves(table, sigma, ds, theta_i=args.theta_i, phi_i=args.phi_i,
                                                  psi=args.psi[0])
+        elif args.figure == "fit":
+            fig = table_plot.fit_comparison([table], sigma, ds, theta_i=args.theta_i)
         else:
             fig = table_plot.error_against_photons(table)
     except ValueError as exc:
         raise UsageError(f"{args.file}: {exc}") from None
+    except OSError as exc:      # the fits' cache beside the table cannot be written
+        raise UsageError(f"{args.file}: cannot cache the fits beside the table: {exc.strerror or exc}") from None
     try:
         table_plot.save(fig, args.output)
     except (ValueError, OSError) as exc:

@@ -120,7 +120,8 @@ class FitTarget:
         g0 = tables[0].grid
         for t in tables[1:]:
             g = t.grid
-            if (g.resolution_deg, g.theta_symmetric) != (g0.resolution_deg, g0.theta_symmetric):
+            if ((g.resolution_deg, g.incoming_spacing_deg, g.theta_symmetric)
+                    != (g0.resolution_deg, g0.incoming_spacing_deg, g0.theta_symmetric)):
                 raise ValueError("the tables of one fit must share their grid and symmetry")
         sig = np.atleast_1d(np.asarray(sigma_a, dtype=np.float64)).reshape(-1)
         acc = None
@@ -149,9 +150,16 @@ def _table_sum(table, sig: np.ndarray, diameter_scale: float) -> tuple[np.ndarra
     w_bar = float(np.mean(table.width(np.linspace(0.0, 2.0 * math.pi, 720, endpoint=False))))
     cos_i = np.cos(g.theta_i_nodes())
     out = np.zeros((n_ti, g.n_theta_o, n_po, C))
+    # Node j sits over the centre of bin shift[j] (nodes at bin centres; a coarser incoming
+    # spacing of an even number of bins puts them on bin edges, which this sum cannot shift).
+    shift_f = (phi_i - 0.5 * g.step) / g.step
+    shift = np.rint(shift_f).astype(np.int64)
+    if not np.allclose(shift_f, shift, atol=1e-6):
+        raise ValueError(f"fits need incoming nodes at bin centres; this table's phi_i spacing "
+                         f"{g.incoming_spacing_deg:g} deg is an even multiple of its {g.resolution_deg:g} deg bins")
     for j in range(n_pi):
         # sigma of node j, its phi_o bins shifted so that column m is dphi = m * step
-        pj = np.roll(p[:, j].astype(np.float64), -j, axis=2)      # (n_ti, B, n_po, C)
+        pj = np.roll(p[:, j].astype(np.float64), -int(shift[j]), axis=2)      # (n_ti, B, n_po, C)
         scale = (w_i[j] * cos_i)[:, None] * rec.albedo[:, j].astype(np.float64)   # (n_ti, C)
         for ti in range(n_ti):
             r0 = int(start[ti, j])

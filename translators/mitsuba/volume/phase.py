@@ -24,6 +24,16 @@ Per voxel the phase knows one slot, the mean fiber direction and the cross-secti
 (psi applied), from :class:`~usdfiber.geometry.voxelize.VoxelGrid`; it finds the voxel of
 ``mei.p`` as Mitsuba's ``gridvolume`` does with ``filter_type = nearest`` (floor of the
 position in voxel units), so density and phase always describe the same voxel.
+
+What the phase leaves out, measured (bench/REPORT.md, "Volumetric cloth"): the spread of the
+fiber directions within a voxel (``VoxelGrid.spread``). For an axially symmetric spread s
+about the mean direction, Eq. 3's sum over the fibers gives ``sin^2 = (1 - s/2) sin^2(theta)
++ s cos^2(theta)`` in place of ``sin^2(theta)``; over the Figure 7 grids (yarns from their
+density, 0.071 mm voxels) the extinction-weighted mean spread is 0.015 (about 7 degrees) and
+the mean extinction seen by the camera changes by -0.25 %: below the renders' noise, so the
+phase uses the mean direction. The mix of tables and colours is kept across voxels (each
+voxel draws one fiber in proportion to length, :mod:`usdfiber.geometry.voxelize`), not within
+one; the paper's figures have one fiber type and dye per prim, where the two are the same.
 """
 from __future__ import annotations
 

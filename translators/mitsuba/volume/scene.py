@@ -43,7 +43,7 @@ from usdfiber.translators.mitsuba.errors import TranslateError
 from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
 from usdfiber.translators.mitsuba.fibers import translate_fibers, yarn_polylines
 from usdfiber.translators.mitsuba.lod import CameraView
-from usdfiber.translators.mitsuba.volume.medium import cloth_volume
+from usdfiber.translators.mitsuba.volume.medium import BRICK_VOXELS, cloth_shapes
 
 __all__ = ["ANALYTIC_YARN_VOXELS", "CLOTH_MODES", "VOLUME_YARN_PIXELS", "VolumeTranslation", "near_plane_warning", "split_cloth",
            "translate_volumes"]
@@ -189,16 +189,20 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
                       settings: BakeSettings, cache: TableCache | None = None, bake_missing: bool = True,
                       progress: Callable[..., Any] | None = None, view: CameraView | None = None,
                       voxels_per_pixel: float = 1.0, voxel_size: float | None = None,
-                      budget_bytes: int = DEFAULT_BUDGET_BYTES) -> tuple[VolumeTranslation, list[Any]]:
-    """One medium per prim of ``placements``; returns it and the placements left as curves
-    (yarn prims whose far field is authored, ``yarn:expandFibers = false``).
+                      budget_bytes: int = DEFAULT_BUDGET_BYTES,
+                      brick_voxels: int = BRICK_VOXELS) -> tuple[VolumeTranslation, list[Any]]:
+    """One voxel grid per prim of ``placements``, as media in bricks of ``brick_voxels``
+    voxels (:func:`usdfiber.translators.mitsuba.volume.medium.cloth_shapes`; 0: one medium
+    per grid); returns them and the placements left as curves (yarn prims whose far field is
+    authored, ``yarn:expandFibers = false``).
 
     Yarn prims whose yarns are at most :data:`ANALYTIC_YARN_VOXELS` voxels wide are voxelized
     from the yarn model's fiber density, without expanding a fiber; wider yarns (voxels that
     resolve fibers) are expanded and their fibers voxelized."""
     out = VolumeTranslation()
     left: list[Any] = []
-    n_vox = 0
+    n_vox = n_faces = 0
+    voxelize_s = 0.0
     for k, pl in enumerate(placements):
         yarn = None
         if pl.prim.HasAPI("FiberYarnAPI"):
@@ -211,6 +215,7 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
             left.append(pl)
             continue
         dense = None
+        t_vox = _time.perf_counter()
         if yarn is not None:
             dense = _yarn_density_grid(pl, stage, time, yarn, settings=settings, cache=cache,
                                        bake_missing=bake_missing, progress=progress, view=view,
@@ -219,6 +224,7 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
         if dense is not None:
             grid, bank, seconds = dense
             out.table_seconds += seconds
+            t_vox += seconds
             out.warnings.append(f"{pl.path}: voxelized from the yarn density ({grid.voxel_size:g}-unit voxels, "
                                 f"no fibers expanded)")
         else:
@@ -228,6 +234,7 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
                 out.warnings.append(f"{pl.path}: no fibers to voxelize; skipped")
                 continue
             out.table_seconds += ft.table_seconds
+            t_vox += ft.table_seconds
             out.warnings.extend(ft.warnings)
             bank = ft.bank
             try:
@@ -236,13 +243,18 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
                 grid = voxelize_fibers(fib, size, n_slots=len(ft.bank.slots), budget_bytes=budget_bytes, seed=k)
             except VoxelizeError as exc:
                 raise TranslateError(str(exc)) from None
+        voxelize_s += _time.perf_counter() - t_vox
         out.warnings.extend(grid.warnings)
         cut = near_plane_warning(view, pl.path, grid.origin, grid.upper)
         if cut:
             out.warnings.append(cut)
         out.grids[pl.path] = grid
-        out.entries[f"volume_{k}"] = cloth_volume(mi, grid, bank)
+        shapes = cloth_shapes(mi, grid, bank, brick=brick_voxels, prefix=f"volume_{k}")
+        out.entries.update(shapes)
+        n_faces += len(shapes)
         n_vox += grid.occupied
-    out.counts = {"volumes": len(out.grids), "voxels_occupied": n_vox,
-                  "voxel_bytes": sum(g.nbytes() for g in out.grids.values())}
+    out.counts = {"volumes": len(out.grids), "voxels_occupied": n_vox, "volume_faces": n_faces,
+                  "voxel_bytes": sum(g.nbytes() for g in out.grids.values()),
+                  # Fibers or yarn densities to grids, tables excluded (fiber expansion included).
+                  "voxelize_ms": int(round(1000 * voxelize_s))}
     return out, left
