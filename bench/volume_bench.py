@@ -33,8 +33,9 @@ err(T / (CPU s per spp)) (:func:`equal_time`). Also the image mean and the mean 
 
 ``shirt-render``: a piece of bench/cloth_bench.py's shirt panel (Skala 360 plain weave, the
 panel's yarn and spacing; ``--yarns`` warps and as many wefts) at ``--res`` as the yarn far field
-(the reference, at ``--ref-passes``) and as a volume. Explicit fibers do not fit the machine at
-this scale (bench/REPORT.md, "Garment scale").
+(the reference, at ``--ref-passes``) and as a volume (voxels of ``--voxel-mm``, default the pixel
+footprint). Explicit fibers do not fit the machine at the scale of the panel (bench/REPORT.md,
+"Garment scale"); ``--explicit`` adds them for small pieces.
 
 ``bricks``: the speed of bricks: the Figure 7 volume (the 320 x 120 view's 0.0713 mm voxels)
 in bricks of ``--bricks`` voxels and as one medium (0), rendered alternately at a low
@@ -235,8 +236,8 @@ def part_swatch_errors(args: argparse.Namespace) -> dict[str, Any]:
     for res, z in runs:
         for mode, rec in res["modes"].items():
             out["modes"][mode] = mode_errors(z[mode], ref, res["spp_per_pass"], rec["cpu_s_per_spp"])
-            out["modes"][mode].update(spp=res["spp_per_pass"] * res["passes"],
-                                      load=res["machine"]["load_average"], res=res["res"])
+            out["modes"][mode].update(spp=res["spp_per_pass"] * res["passes"], res=res["res"], run=rec,
+                                      machine=res["machine"], argv=res.get("argv"))
     out["equal_time_cpu_s"] = equal_time(out["modes"], [float(t) for t in args.budgets.split(",")])
     return out
 
@@ -392,7 +393,11 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
     bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
     cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
     images: dict[str, np.ndarray] = {}
-    for mode, kw in (("far field", dict(cloth="fibers", lod_scale=1.0)), ("volume", dict(cloth="volume"))):
+    modes: list[tuple[str, dict[str, Any]]] = [("far field", dict(cloth="fibers", lod_scale=1.0)),
+                                               ("volume", dict(cloth="volume", voxel_size=args.voxel_mm))]
+    if args.explicit:
+        modes.append(("fibers", dict(cloth="fibers", lod_scale=0.0)))
+    for mode, kw in modes:
         c0, t0 = time.process_time(), time.perf_counter()
         tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
                                                  camera="/Cams/whole", **kw))
@@ -422,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render"))
     ap.add_argument("--res", default=None, help="swatch: 160x60; shirt-render: 160x120; bricks: 80x30")
-    ap.add_argument("--spp", type=int, default=2, help="swatch, shirt-render: samples per pass; bricks: per render")
+    ap.add_argument("--spp", type=int, default=None,
+                    help="swatch, shirt-render: samples per pass (2); bricks: per render (4)")
     ap.add_argument("--passes", type=int, default=4, help="swatch, shirt-render: timed passes per mode")
     ap.add_argument("--ref-passes", type=int, default=24, help="swatch: reference passes (explicit fibers)")
     ap.add_argument("--modes", default="", help="swatch: modes separated by ';' (default: all of them)")
@@ -436,13 +442,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--voxel-mm", type=float, default=None,
                     help="voxel edge, mm (shirt: 1.04, the 640-pixel view's footprint; "
                          "bricks: 0.0713, the 320 x 120 one's)")
+    ap.add_argument("--explicit", action="store_true", help="shirt-render: also explicit fibers (small pieces only)")
     ap.add_argument("--rounds", type=int, default=2, help="bricks: alternated timed renders per brick size")
     args = ap.parse_args(argv)
     if args.bricks is None:
         args.bricks = "8,0" if args.part == "bricks" else ""
+    if args.spp is None:
+        args.spp = 4 if args.part == "bricks" else 2
     if args.res is None:
         args.res = {"bricks": "80x30", "shirt-render": "160x120"}.get(args.part, "160x60")
-    if args.voxel_mm is None:
+    if args.voxel_mm is None and args.part != "shirt-render":     # shirt-render: the pixel footprint
         args.voxel_mm = 0.0713 if args.part == "bricks" else 665.0 / 640.0
     out = {"machine": machine(), "part": args.part, "argv": sys.argv[1:] if argv is None else argv}
     out.update({"swatch": part_swatch, "swatch-errors": part_swatch_errors, "bricks": part_bricks,

@@ -325,6 +325,19 @@ def run(args: argparse.Namespace) -> int:
     if not jobs:
         print("nothing to bake: no fiber prims need tables")
         return 0
+    try:
+        cache.root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"cannot create the cache directory {cache.root}: {exc.strerror or exc}") from None
+    from usdfiber.farm.command import run_bake, wants_farm
+
+    if wants_farm(args):
+        # No estimate here: the probe measures this machine, not the cluster's workers (and a
+        # shard does only part of the work); the farm reports its own progress.
+        if args.plot:
+            raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
+                             "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
+        return run_bake(args, reqs, settings, cache)
     # What the bake will cost, before it starts (the tables no cached table serves).
     try:
         estimates = [_estimate(req, settings, cache) for _, req in jobs
@@ -337,19 +350,6 @@ def run(args: argparse.Namespace) -> int:
     if len(estimates) > 1:
         print(f"estimate: {len(jobs)} tables{_totals(estimates)}", file=sys.stderr)
     _warn_if_long(estimates, settings, args)
-    try:
-        cache.root.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"cannot create the cache directory {cache.root}: {exc.strerror or exc}") from None
-    from usdfiber.farm.command import run_bake, wants_farm
-
-    if wants_farm(args):
-        if args.plot:
-            from usdfiber.cli import UsageError
-
-            raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
-                             "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
-        return run_bake(args, reqs, settings, cache)
 
     from tqdm import tqdm
 
