@@ -26,6 +26,16 @@ def json_default(o: Any) -> Any:
     raise TypeError(type(o))
 
 
+def write_results(path: str | Path, results: dict[str, Any]) -> Path:
+    """Write a benchmark's results as indented JSON (numpy values converted), making folders."""
+    import json
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1, default=json_default))
+    return out
+
+
 class Timer:
     """Wall and process CPU time (all threads) of a block; cores = cpu / wall."""
 

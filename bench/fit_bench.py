@@ -16,7 +16,6 @@ as good as the table can tell.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 
 import usdfiber  # noqa: E402,F401
-from bench_common import json_default, machine  # noqa: E402
+from bench_common import machine, write_results  # noqa: E402
 from pxr import Usd, UsdGeom  # noqa: E402
 
 from usdfiber import authoring  # noqa: E402
@@ -89,9 +88,7 @@ def main() -> int:
                       + "  albedo table " + " ".join(f"{a:.3f}" for a in res.error["albedo_table"])
                       + " model " + " ".join(f"{a:.3f}" for a in res.error["albedo_model"]), flush=True)
     out = {"machine": machine(), "resolution_deg": args.resolution, "photons": args.photons, "rows": rows}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1, default=json_default))
-    print(f"wrote {args.out}")
+    print(f"wrote {write_results(args.out, out)}")
     return 0
 
 

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
 
-from bench_common import json_default, machine  # noqa: E402
+from bench_common import machine, write_results  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 MODELS = ("table", "chiang", "khungurn")
@@ -158,8 +158,7 @@ def main() -> int:
                                     "counts": r["second"].get("counts")} for m, r in runs.items()}})
     load = os.getloadavg()
     out = {"machine": machine(load_average=load), "bake": bake, "rows": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1, default=json_default))
+    write_results(args.out, out)
     print(f"wrote {args.out}; load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
     return 0
 

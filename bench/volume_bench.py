@@ -127,6 +127,24 @@ def render_passes(mi: Any, scene: Any, spp: int, passes: int, seed0: int) -> tup
     return np.stack(imgs), cpu, wall
 
 
+def time_mode(mi: Any, stage: Any, options: Any, spp: int, passes: int) -> tuple[Any, np.ndarray, dict[str, Any]]:
+    """Translate ``stage`` with ``options``, render one compiling pass (not timed), then
+    ``passes`` timed passes: (translation, images, record of CPU and wall times)."""
+    from usdfiber.translators.mitsuba.scene import translate_stage
+
+    c0, t0 = time.process_time(), time.perf_counter()
+    tr = translate_stage(stage, options)
+    c1, t1 = time.process_time(), time.perf_counter()
+    mi.render(tr.scene, spp=spp, seed=_opaque_seed(mi, 0))   # kernel compilation, not timed
+    c2, t2 = time.process_time(), time.perf_counter()
+    imgs, cpu, wall = render_passes(mi, tr.scene, spp, passes, 1)
+    rec = {"translate_s": t1 - t0, "translate_cpu_s": c1 - c0, "compile_pass_s": t2 - t1,
+           "compile_pass_cpu_s": c2 - c1, "pass_cpu_s": cpu, "pass_wall_s": wall,
+           "cpu_s_per_spp": float(np.median(cpu)) / spp, "wall_s_per_spp": float(np.median(wall)) / spp,
+           "load": os.getloadavg()[0]}
+    return tr, imgs, rec
+
+
 def part_swatch(args: argparse.Namespace) -> dict[str, Any]:
     """One or more modes of the Figure 7 swatch (``--modes``), each: translate, a compiling pass,
     then ``--passes`` timed passes of ``--spp`` samples; ``fibers`` also renders ``--ref-passes``
@@ -139,7 +157,7 @@ def part_swatch(args: argparse.Namespace) -> dict[str, Any]:
     from usdfiber.bake.settings import BakeSettings
 
     mi = mitsuba()
-    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.scene import SceneOptions
     from usdfiber.translators.mitsuba.volume.medium import BRICK_VOXELS
 
     stage = Usd.Stage.Open(os.path.join(ROOT, "examples", "fig7_swatches.usda"))
@@ -153,20 +171,12 @@ def part_swatch(args: argparse.Namespace) -> dict[str, Any]:
                            "passes": args.passes, "reference_passes": args.ref_passes,
                            "default_brick": BRICK_VOXELS, "modes": {}}
     for mode in chosen:
-        c0, t0 = time.process_time(), time.perf_counter()
-        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache, **modes[mode]))
-        c1, t1 = time.process_time(), time.perf_counter()
-        mi.render(tr.scene, spp=args.spp, seed=_opaque_seed(mi, 0))   # kernel compilation, not timed
-        c2, t2 = time.process_time(), time.perf_counter()
-        imgs, cpu, wall = render_passes(mi, tr.scene, args.spp, args.passes, 1)
+        tr, imgs, rec = time_mode(mi, stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
+                                                          **modes[mode]), args.spp, args.passes)
         images[mode] = imgs
-        rec = {"translate_s": t1 - t0, "translate_cpu_s": c1 - c0, "compile_pass_s": t2 - t1,
-               "compile_pass_cpu_s": c2 - c1, "pass_cpu_s": cpu, "pass_wall_s": wall,
-               "cpu_s_per_spp": float(np.median(cpu)) / args.spp, "wall_s_per_spp": float(np.median(wall)) / args.spp,
-               "load": os.getloadavg()[0],
-               "counts": {k: v for k, v in tr.counts.items() if k in ("voxel_bytes", "voxels_occupied", "volume_faces",
-                                                                      "voxelize_ms", "fiber_segments", "volumes",
-                                                                      "fiber_curves", "yarn_far_fields")}}
+        rec["counts"] = {k: v for k, v in tr.counts.items() if k in ("voxel_bytes", "voxels_occupied", "volume_faces",
+                                                                     "voxelize_ms", "fiber_segments", "volumes",
+                                                                     "fiber_curves", "yarn_far_fields")}
         if mode == "fibers" and args.ref_passes:
             ref, rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
             images["reference"] = ref
@@ -380,7 +390,7 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
     from usdfiber.bake.settings import BakeSettings
 
     mi = mitsuba()
-    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+    from usdfiber.translators.mitsuba.scene import SceneOptions
 
     w, h = (int(v) for v in args.res.split("x"))
     spec = {"kind": "weave", "yarn": "Skala 360", "warps": args.yarns, "wefts": args.yarns, "res": [w, h],
@@ -398,18 +408,10 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
     if args.explicit:
         modes.append(("fibers", dict(cloth="fibers", lod_scale=0.0)))
     for mode, kw in modes:
-        c0, t0 = time.process_time(), time.perf_counter()
-        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
-                                                 camera="/Cams/whole", **kw))
-        c1, t1 = time.process_time(), time.perf_counter()
-        mi.render(tr.scene, spp=args.spp, seed=_opaque_seed(mi, 0))   # kernel compilation, not timed
-        c2, t2 = time.process_time(), time.perf_counter()
-        imgs, cpu, wall = render_passes(mi, tr.scene, args.spp, args.passes, 1)
+        tr, imgs, rec = time_mode(mi, stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
+                                                          camera="/Cams/whole", **kw), args.spp, args.passes)
         images[mode] = imgs
-        rec = {"translate_s": t1 - t0, "translate_cpu_s": c1 - c0, "compile_pass_s": t2 - t1,
-               "compile_pass_cpu_s": c2 - c1, "pass_cpu_s": cpu, "pass_wall_s": wall,
-               "cpu_s_per_spp": float(np.median(cpu)) / args.spp, "wall_s_per_spp": float(np.median(wall)) / args.spp,
-               "load": os.getloadavg()[0], "counts": dict(tr.counts), "warnings": list(tr.warnings)[:8]}
+        rec.update(counts=dict(tr.counts), warnings=list(tr.warnings)[:8])
         if mode == "far field":
             images["reference"], rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
             out["reference_cpu_s"] = float(np.sum(rcpu))

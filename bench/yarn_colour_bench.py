@@ -17,7 +17,6 @@ through the expanded yarn, every interaction with a fiber sampling the fiber's t
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -28,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 
 import usdfiber  # noqa: E402,F401
-from bench_common import json_default, machine  # noqa: E402
+from bench_common import machine, write_results  # noqa: E402
 from pxr import Usd, UsdGeom  # noqa: E402
 
 from usdfiber.bcsdf import BakeSettings, TableCache, tables_for_prim  # noqa: E402
@@ -92,9 +91,7 @@ def main() -> int:
               f"yarn {yarn_rgb.round(3)} {row['yarn_hex']}, yarn/fiber {ratio.round(3)}, coverage {cov:.3f}, "
               f"undyed yarn albedo {yarn_white:.3f}", flush=True)
     out = {"machine": machine(load_average=os.getloadavg()), "rows": rows}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1, default=json_default))
-    print(f"wrote {args.out}")
+    print(f"wrote {write_results(args.out, out)}")
     return 0
 
 
