@@ -117,12 +117,13 @@ def test_coarse_table_interpolates_between_its_nodes(coarse_silk):
     # At a node: the stored histogram itself.
     p = t.level_p(0)[1, 4].astype(np.float64)
     b0 = int(t.band_start[1, 4])
-    np.testing.assert_allclose(node(1, 4)[b0:b0 + t.n_band], p, rtol=1e-5, atol=1e-6 * p.max())
+    # (eval_p goes through the recolouring path, renormalized in float32: agreement to 1e-4, below float16's 5e-4 step)
+    np.testing.assert_allclose(node(1, 4)[b0:b0 + t.n_band], p, rtol=1e-4, atol=1e-6 * p.max())
     # Midway between nodes 30 deg apart (not between 15 deg bins): the mean of the two.
     mid = t.eval_p(0.5 * (th_n[1] + th_n[2]), ph_n[4], to, po, interp_o="nearest")
-    np.testing.assert_allclose(mid, 0.5 * (node(1, 4) + node(2, 4)), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(mid, 0.5 * (node(1, 4) + node(2, 4)), rtol=1e-4, atol=1e-7)
     mid = t.eval_p(th_n[1], 0.5 * (ph_n[4] + ph_n[5]), to, po, interp_o="nearest")
-    np.testing.assert_allclose(mid, 0.5 * (node(1, 4) + node(1, 5)), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(mid, 0.5 * (node(1, 4) + node(1, 5)), rtol=1e-4, atol=1e-7)
     # Through theta_i = 0: the first node and its mirror (theta_o negated).
     nodes = incoming_nodes(g, np.array([0.0]), np.array([ph_n[4]]), True)
     weight = {}
