@@ -22,7 +22,7 @@ test-all: setup
 MC_TESTS ?= tests/mitsuba/test_integrator.py tests/mitsuba/test_fiber_bsdf.py tests/bake/test_tracer.py \
 	tests/bake/test_reference_tracer.py tests/bake/test_table.py tests/mitsuba/test_yarn_far_field.py \
 	tests/mitsuba/test_hair_comparison.py tests/mitsuba/test_lod_bound.py tests/mitsuba/test_translate_lights.py \
-	tests/bake/test_recolour.py
+	tests/bake/test_recolour.py tests/bake/test_expected_estimator.py
 test-widths: setup
 	USDFIBER_TEST_VECTOR_WIDTH=8 $(PYTHON) -m pytest -q $(MC_TESTS)
 	@if grep -qw avx512f /proc/cpuinfo; then \

@@ -2,6 +2,8 @@
 
     python bench/bake_compression.py --tables TABLE.npz [TABLE.npz ...] [--keep-dir DIR]
     python bench/bake_compression.py --quick          # bakes a small silk table first
+    python bench/bake_compression.py --sample-photons N [N ...] [--sample-incoming 30] --keep-dir DIR
+    python bench/bake_compression.py --bank-memory-child RES VARIANTS
 
 For every (levels-layout) table: its size in memory and on disk; the absorption-basis codec
 (low-rank absorption model + blosc2 ZFP) at a 1 % bound: compression time, file size, memory,
@@ -13,6 +15,12 @@ scaled to the table); the peak resident memory of loading N compressed copies (s
 N cross-section variants) and recolouring each for 3 colours, keeping per slot what the
 renderer keeps (a float16 4-vector per bin), for N = 1 and 2 (``--memory-variants``), in
 subprocesses. Writes ``bench/results/compression.json`` (``--out`` names another file).
+
+``--sample-photons``: the full 2 deg variant's compressed size measured on a sample of its
+directions (a table with coarse incoming nodes, every node a full 2 deg direction) at each
+photon count (:func:`sample_size`; ``compression_sample.json``). ``--bank-memory-child``: the
+peak memory of a render's fiber bank for VARIANTS tables of the silk layout at RES degrees, 3
+colours each (:func:`bank_memory_child`; prints one JSON line).
 """
 from __future__ import annotations
 
@@ -168,6 +176,42 @@ def memory_child(path: str, variants: int) -> None:
                       "wall_s": time.perf_counter() - t0}))
 
 
+def bank_memory_child(res: float, variants: int, band: int = 83) -> None:
+    """(Run in a subprocess.) What a render keeps for ``variants`` tables of the extruded
+    (silk/cotton) layout at ``res`` degrees (random contents: memory does not depend on them),
+    each recoloured for the 3 RGB colours: the fiber bank (``FiberBank.build``), then what the
+    Mitsuba BSDF copies to the device from it (``FamilyDevice``: the float16 node table and the
+    sampler's CDFs; the per-node albedo). Prints the peak RSS and the bytes of each part."""
+    import drjit as dr
+    from drjit.llvm import Float, Float16
+
+    from bake_common import synthetic_table
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot, bilinear_integral
+
+    t0 = time.perf_counter()
+    tables = [synthetic_table(res, True, band, seed=v) for v in range(variants)]
+    slots = [FiberSlot(t, rgb) for t in tables for rgb in RGB]
+    rss = lambda key: next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith(key))
+    after_tables = rss("VmRSS:")
+    bank = FiberBank.build(slots)
+    after_bank = rss("VmRSS:")
+    fam = bank.families[False]
+    node = Float16(fam.node_table().reshape(-1))
+    marg, cond = fam.sampling_cdfs()
+    cdfs = (Float(marg.reshape(-1)), Float(cond.reshape(-1)))
+    alb = Float(bilinear_integral(np.moveaxis(fam.f.astype(np.float64), -1, 3)).astype(np.float32).reshape(-1))
+    dr.eval(node, *cdfs, alb)
+    del marg, cond
+    nodes = int(np.prod(fam.pdf.shape[1:]))
+    print(json.dumps({"res": res, "variants": variants, "slots": len(slots), "band": band,
+                      "nodes_per_slot": nodes, "node_grid": list(fam.pdf.shape[1:]),
+                      "table_bytes": sum(t.nbytes() for t in tables), "family_f_bytes": int(fam.f.nbytes),
+                      "family_pdf_bytes": int(fam.pdf.nbytes), "node_table_bytes": 8 * nodes * len(slots),
+                      "cdf_bytes": 4 * (len(cdfs[0]) + len(cdfs[1])), "rss_after_tables": after_tables,
+                      "rss_after_bank": after_bank, "rss_end": rss("VmRSS:"), "peak_rss_bytes": rss("VmHWM:"),
+                      "wall_s": time.perf_counter() - t0}))
+
+
 def memory(path: str, variants: list[int]) -> list[dict[str, Any]]:
     out = []
     for v in variants:
@@ -190,8 +234,71 @@ def quick_table(root: Path) -> Path:
     return res.path
 
 
+def sample_size(keep: Path, fiber: str, photons: list[int], incoming_deg: float, bound: float) -> list[dict[str, Any]]:
+    """The full 2 deg variant's compressed size from a sample of its directions.
+
+    A table with 2 deg outgoing bins and incoming nodes every ``incoming_deg`` holds full
+    2 deg directions only (each node is traced, binned and compressed exactly as in the full
+    table). The codec works per incoming direction, so the full variant's file is its bytes
+    per direction x the full table's directions plus a few fixed arrays (measured here too):
+    the additive parts of the full size, measured at each photon count (the trend against
+    the table's own noise). Bakes through a table cache under ``keep`` (reused by a rerun)."""
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.grid import Grid
+    from usdfiber.bake.requests import requests_from_preset
+    from usdfiber.bake.settings import BakeSettings
+
+    req = requests_from_preset(fiber)[0]
+    full = Grid(2.0, True, False)
+    n_full = full.n_theta_i * full.n_phi_i
+    rows = []
+    for n in photons:
+        st = BakeSettings(resolution_deg=2.0, incoming_deg=incoming_deg, photons=n, batches=8)
+        with Timer() as t_b:
+            res = TableCache(keep / "cache").get_or_bake(req, st)
+        tab = res.table
+        n_dir = tab.grid.n_theta_i * tab.grid.n_phi_i
+        with Timer() as t_c:
+            comp = tab.compress(bound)
+        cpath = keep / f"{fiber}_2deg_in{incoming_deg:g}_{n}.basis.npz"
+        comp.save(cpath)
+        a = comp.arrays
+        # Arrays with one entry per direction scale with the table; the rest is fixed.
+        per_dir = int(a["basis_codec"].nbytes) + sum(int(v.nbytes) for k, v in a.items()
+                                                     if k not in ("basis", "basis_codec", "levels", "width",
+                                                                  "absorptions", "basis_groups"))
+        fixed = cpath.stat().st_size - per_dir
+        err = tab.rel_error.astype(np.float64)
+        row = {"photons": n, "directions": n_dir, "baked": res.baked, "bake_s": res.seconds,
+               "bake_cores": t_b.cores if res.baked else None,
+               "noise_rms": float(np.sqrt(np.mean(err ** 2))), "noise_max": float(err.max()),
+               "noise_per_theta_i": np.sqrt(np.mean(err ** 2, axis=1)).tolist(),
+               "band": tab.n_band, "rank": comp.header["compression"]["rank"],
+               "compression_error_max": comp.header["compression"]["error_max"],
+               "compress_s": t_c.wall, "compress_cores": t_c.cores,
+               "uncompressed_file_bytes": res.path.stat().st_size, "compressed_file_bytes": cpath.stat().st_size,
+               "codec_bytes": int(a["basis_codec"].nbytes), "per_direction_bytes": per_dir / n_dir,
+               "fixed_bytes": fixed, "full_directions": n_full,
+               "full_file_bytes_est": per_dir / n_dir * n_full + fixed,
+               "full_uncompressed_file_bytes_est": res.path.stat().st_size / n_dir * n_full,
+               "full_memory_bytes_est": comp.nbytes() / n_dir * n_full}
+        rows.append(row)
+        print(f"{fiber} {n} photons/direction ({n_dir} directions, noise rms {fmt_pct(row['noise_rms'])}, "
+              f"max {fmt_pct(row['noise_max'])}): rank {row['rank']}, {row['per_direction_bytes'] / 1e3:.1f} kB per "
+              f"direction -> full variant {row['full_file_bytes_est'] / 1e6:.0f} MB "
+              f"(uncompressed {row['full_uncompressed_file_bytes_est'] / 1e6:.0f} MB)", flush=True)
+        del tab, comp, res
+    return rows
+
+
 def cmd_compression(args: argparse.Namespace) -> int:
     rec = Record("compression", args)
+    if args.sample_photons:
+        keep = Path(args.keep_dir or tempfile.mkdtemp(prefix="usdfiber-compression-"))
+        keep.mkdir(parents=True, exist_ok=True)
+        rec.doc["results"] = sample_size(keep, args.fiber, args.sample_photons, args.sample_incoming, args.bound)
+        rec.finish(results_path(args, "compression_sample"))
+        return 0
     keep = Path(args.keep_dir or tempfile.mkdtemp(prefix="usdfiber-compression-"))
     keep.mkdir(parents=True, exist_ok=True)
     tables = [Path(p) for p in args.tables] or [quick_table(keep / "cache")]
@@ -220,6 +327,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--memory-child"]:
         memory_child(argv[1], int(argv[2]))
         return 0
+    if argv[:1] == ["--bank-memory-child"]:
+        bank_memory_child(float(argv[1]), int(argv[2]))
+        return 0
     ap = bench_parser(__doc__, "bake a small 15 deg silk table and measure it")
     ap.add_argument("--tables", nargs="*", default=[], help="uncompressed table files")
     ap.add_argument("--bound", type=float, default=0.01)
@@ -227,6 +337,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trunc-bits", type=int, nargs="*", default=[8, 6, 4], help="TRUNC_PREC mantissa bits")
     ap.add_argument("--trunc-stride", type=int, default=16, help="every N-th direction for TRUNC_PREC")
     ap.add_argument("--memory-variants", type=int, nargs="*", default=[1, 2])
+    ap.add_argument("--sample-photons", type=int, nargs="*", default=[],
+                    help="measure the full 2 deg size from a sample of directions baked at these photons each")
+    ap.add_argument("--sample-incoming", type=float, default=30.0, help="incoming node spacing of the sample (deg)")
+    ap.add_argument("--fiber", default="silk", help="preset of the sampled table (variant 0)")
     return cmd_compression(ap.parse_args(argv))
 
 

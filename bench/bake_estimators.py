@@ -16,6 +16,14 @@ with plain and split calls interleaved; both wall and CPU time (``time.process_t
 threads of this process) are recorded, and the gain is computed from the CPU time, which a
 machine shared with other work distorts less than the wall time.
 
+Part ``expected`` (the expected-value estimator at the outer boundary, ``--expected`` normals
+per event): as ``split``, with plain and expected-value calls interleaved; each call is timed
+with what a bake does with its exits, the histograms at the baker's 11 absorption levels
+(plain: numpy binning of every exit, as ``DirectionStatistics.add``; expected: the same for the
+exits it does not deposit, plus its in-kernel histograms): CPU seconds of the trace and of the
+binning are recorded apart, and the gain uses their sum. ``ev_fraction`` is the share of the
+exit weight deposited as expectations (the rest left where leaving is not known to be for good).
+
 Part ``table`` (reciprocity, which needs whole tables): box-filtered bakes of a table, plain
 and with reciprocity averaging, ``--table-photons`` per direction, against a plain box bake
 with 16x the photons; error per direction as above (the table's own bins, p at zero
@@ -136,6 +144,91 @@ def split_part(args, rec) -> list[dict]:
     return out
 
 
+def _bin_levels(r, levels: np.ndarray) -> np.ndarray:
+    """What a bake does with a traced batch (``DirectionStatistics.add``): weight and weight x L
+    per 2 degree bin at every absorption level; returns p at zero absorption per steradian."""
+    from usdfiber.bake.binning import DEFAULT_GRID
+
+    g = DEFAULT_GRID
+    nb = g.n_theta_o * g.n_phi_o
+    idx = g.bin_index(r.directions)
+    L = r.path_length.astype(np.float64)
+    w0 = r.exit_weights()
+    h = np.zeros((len(levels), nb))
+    gl = np.zeros((len(levels), nb))
+    for k, s in enumerate(levels):
+        w = w0 * np.exp(-s * L) if s > 0 else w0
+        h[k] = np.bincount(idx, weights=w, minlength=nb)
+        gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+    if r.histogram is not None:
+        h += r.histogram[:, 0]
+        gl += r.histogram[:, 1]
+    return (h[0] / max(r.n_hit, 1)).reshape(g.n_theta_o, g.n_phi_o) / solid_angles()
+
+
+def expected_part(args, rec) -> list[dict]:
+    from usdfiber.bake import tracer
+    from usdfiber.bake.absorption import DEFAULT_LEVELS
+    from usdfiber.bake.binning import DEFAULT_GRID
+
+    dirs = [tuple(float(x) for x in d.split(",")) for d in args.directions.split(";") if d]
+    ks = [int(k) for k in args.expected.split(",")]
+    w = solid_angles()
+    N, M = 1 << args.expected_photons_log2, (1 << args.expected_photons_log2) * args.ref_factor
+    out = []
+    for name in args.expected_fibers.split(","):
+        case = fiber_case(name)
+        fs = tracer.prepare(case["profile"], case["cuticle"])
+        # The baker's levels: optical depths across the circumscribed diameter (1 um here).
+        levels = np.asarray(DEFAULT_LEVELS, dtype=np.float64) / float(case["profile"].circumscribed_diameter)
+        hist = tracer.ExitHistogram.for_grid(DEFAULT_GRID, levels)
+        kw = dict(eta=case["eta"], beta_deg=case["beta_deg"], cuticle=case["cuticle"], max_bounces=4096)
+
+        def run(k, th, ph, n, seed):
+            return tracer.trace(fs, th, ph, n, seed=seed, expected=k, histogram=hist if k else None, **kw)
+
+        for k in [0] + ks:                           # compile every kernel before timing
+            run(k, 0.3, 0.2, 4096, 1)
+        for j, (th, ph) in enumerate(dirs):
+            t_i, p_i = math.radians(th), math.radians(ph)
+            refs = [_p2(run(0, t_i, p_i, M // 4, 50_000 + 10 * j + b)) for b in range(4)]
+            ref = np.mean(refs, axis=0)
+            e_ref2 = float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+            runs: dict[int, list] = {k: [] for k in [0] + ks}
+            for rep_ in range(args.repeats):
+                for k in runs:
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    r = run(k, t_i, p_i, N, 60_000 + 100 * j + 10 * rep_ + k)
+                    c1 = time.process_time()
+                    p = _bin_levels(r, levels)
+                    dt, dc, db = time.perf_counter() - t0, c1 - c0, time.process_time() - c1
+                    d = rel_l2(p, ref, w)
+                    dep = float(r.histogram[0, 0].sum()) if r.histogram is not None else 0.0
+                    runs[k].append({"seconds": dt, "cpu_trace": dc, "cpu_bin": db, "cpu": dc + db, "d": d,
+                                    "e2": d * d - e_ref2, "ev_fraction": dep / max(dep + float(r.exit_weights().sum()), 1e-300)})
+            row = {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
+                   "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+            for k, rs in runs.items():
+                row[f"K{k}"] = {c: float(np.median([x[c] for x in rs])) for c in ("seconds", "cpu", "cpu_trace", "cpu_bin")}
+                row[f"K{k}"].update({"e": math.sqrt(max(float(np.mean([x["e2"] for x in rs])), 0.0)),
+                                     "ev_fraction": float(np.mean([x["ev_fraction"] for x in rs])), "runs": rs})
+            a = row["K0"]
+            for k in ks:
+                b = row[f"K{k}"]
+                row[f"var_ratio_K{k}"] = a["e"] ** 2 / b["e"] ** 2 if b["e"] > 0 else math.inf
+                row[f"cpu_ratio_K{k}"] = b["cpu"] / a["cpu"]
+                row[f"trace_ratio_K{k}"] = b["cpu_trace"] / a["cpu_trace"]
+                row[f"gain_K{k}"] = row[f"var_ratio_K{k}"] / row[f"cpu_ratio_K{k}"]
+            print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['cpu_trace']:.2f}+"
+                  f"{a['cpu_bin']:.2f} s cpu; "
+                  + "; ".join(f"K={k} {fmt_pct(row[f'K{k}']['e'])} var x{row[f'var_ratio_K{k}']:.2f} "
+                              f"cpu x{row[f'cpu_ratio_K{k}']:.2f} (trace x{row[f'trace_ratio_K{k}']:.2f}) "
+                              f"gain {row[f'gain_K{k}']:.2f} ev {row[f'K{k}']['ev_fraction']:.3f}" for k in ks),
+                  flush=True)
+            out.append(row)
+    return out
+
+
 def _p_table(t) -> np.ndarray:
     """(n_ti, n_pi, n_theta_o, n_phi_o) p at zero absorption, per steradian."""
     g = t.grid
@@ -221,10 +314,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--table-fibers", default="polyester,silk,cotton")
     ap.add_argument("--table-photons", type=int, default=16384)
-    ap.add_argument("--parts", default="direction,table", help="some of direction, split, table")
+    ap.add_argument("--parts", default="direction,table", help="some of direction, split, expected, table")
     ap.add_argument("--split-fibers", default="polyester,silk,cotton")
     ap.add_argument("--splits", default="4,8", help="walks per split to measure")
     ap.add_argument("--split-photons-log2", type=int, default=16)
+    ap.add_argument("--expected-fibers", default="polyester,silk,cotton,circle-smooth")
+    ap.add_argument("--expected", default="2,4,8", help="normals per event to measure")
+    ap.add_argument("--expected-photons-log2", type=int, default=16)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -232,6 +328,7 @@ def main() -> None:
         args.photons_log2, args.repeats, args.table_photons = 14, 1, 1024
         args.directions = "40,25;75,65"
         args.split_photons_log2, args.splits, args.split_fibers = 12, "4", "polyester"
+        args.expected_photons_log2, args.expected, args.expected_fibers = 12, "4", "polyester"
     rec = Record("estimators", args)
     results = {}
     if "direction" in args.parts:
@@ -251,6 +348,18 @@ def main() -> None:
                        [[r["fiber"], f"{r['theta_i']:g}, {r['phi_i']:g}", fmt_pct(r["K0"]["e"]), f"{r['K0']['cpu']:.2f}"]
                         + [x for k in ks for x in (fmt_pct(r[f"K{k}"]["e"]), f"{r[f'var_ratio_K{k}']:.2f}",
                                                    f"{r[f'cpu_ratio_K{k}']:.2f}", f"{r[f'gain_K{k}']:.2f}")]
+                        for r in rows]))
+    if "expected" in args.parts:
+        rows = expected_part(args, rec)
+        results["expected"] = rows
+        ks = [int(k) for k in args.expected.split(",")]
+        print(md_table(["fiber", "theta_i, phi_i", "plain e", "plain cpu s (trace + bins)"]
+                       + [f"K={k} {c}" for k in ks for c in ("e", "var ratio", "cpu ratio", "trace ratio", "gain")],
+                       [[r["fiber"], f"{r['theta_i']:g}, {r['phi_i']:g}", fmt_pct(r["K0"]["e"]),
+                         f"{r['K0']['cpu_trace']:.2f} + {r['K0']['cpu_bin']:.2f}"]
+                        + [x for k in ks for x in (fmt_pct(r[f"K{k}"]["e"]), f"{r[f'var_ratio_K{k}']:.2f}",
+                                                   f"{r[f'cpu_ratio_K{k}']:.2f}", f"{r[f'trace_ratio_K{k}']:.2f}",
+                                                   f"{r[f'gain_K{k}']:.2f}")]
                         for r in rows]))
     if "table" in args.parts:
         results["table"] = table_part(args, rec)

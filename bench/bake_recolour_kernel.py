@@ -1,15 +1,26 @@
 """Benchmark: recolouring in the Dr.Jit kernel against the float64 numpy path, up to full 2 deg tables.
 
     python bench/bake_recolour_kernel.py [--quick]
+    python bench/bake_recolour_kernel.py --versus REV [--res 2] [--repeats 3]
 
 Writes ``bench/results/recolour_kernel.json`` (``--out`` names another file); what it records and
-the error metrics: :mod:`bake_common`.
+the error metrics: :mod:`bake_common`. ``--versus REV`` times the kernels of
+``usdfiber/bake/recolour.py`` at git revision ``REV`` and the working tree's side by side on one
+table with the real layout (both paths: the levels and a rank-6 absorption basis), interleaved
+(old, new, old, new, ...) so that both see the same load, and records wall and CPU seconds, the
+time of every kernel (``dr.kernel_history()``) and the largest difference between the two
+(``recolour_kernel_versus.json``).
 """
 from __future__ import annotations
 
 import argparse
 import gc
+import importlib.util
+import subprocess
 import sys
+import tempfile
+from pathlib import Path
+import json
 from typing import Any
 
 import numpy as np
@@ -89,9 +100,115 @@ def cmd_recolour_kernel(args: argparse.Namespace) -> int:
     return 0
 
 
+def _module_at(rev: str):
+    """``usdfiber/bake/recolour.py`` as it was at git revision ``rev``, as a module."""
+    root = Path(__file__).resolve().parent.parent
+    src = subprocess.run(["git", "show", f"{rev}:usdfiber/bake/recolour.py"], cwd=root, check=True,
+                         capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp(prefix="recolour-")) / "recolour_at_rev.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location("recolour_at_rev", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _timed(fn) -> dict[str, Any]:
+    """Wall and CPU seconds of ``fn()`` and the seconds of each kernel it launched."""
+    import drjit as dr
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()                                # clears the history
+    with Timer() as t:
+        out = fn()
+    kernels = [(round(k["execution_time"] / 1e3, 4), int(k["size"])) for k in dr.kernel_history()
+               if k.get("execution_time", 0) > 0.5]
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return {"wall": t.wall, "cpu": t.cpu, "cores": t.cores, "kernels_s": kernels,
+            "kernel_total_s": sum(k for k, _ in kernels)}, out
+
+
+def cmd_versus(args: argparse.Namespace) -> int:
+    """The working tree's kernels against those of ``args.versus``, interleaved."""
+    import os
+
+    from usdfiber.bake import recolour as new
+    from usdfiber.bake.grid import Grid
+
+    old = _module_at(args.versus)
+    rec = Record("recolour_kernel_versus", args)
+    paths = args.paths.split(",")
+    # The levels (5.3 GB at 2 deg) only where that path is timed; the basis path needs the layout.
+    syn = synthetic_table(args.res if "levels" in paths else 30.0, True, 83)
+    g = Grid(args.res, True, False)
+    n, B, n_po, K = g.n_theta_i * g.n_phi_i, min(83, g.n_theta_o), g.n_phi_o, len(syn.levels)
+    start = (g.n_theta_o - B) // 2
+    dom = np.broadcast_to(g.solid_angles()[start:start + B], (n, B)).copy()
+    if "levels" in paths:
+        a = syn.arrays
+        p, lb = a["p"].reshape(n, K, B, n_po), a["lbar"].reshape(n, K, B, n_po)
+        scale = (a["p_scale"].astype(np.float64) * a["albedo"]).reshape(n, K)
+    R = 6
+    rng = np.random.default_rng(1)
+    basis = np.empty((n, R, B, n_po), np.float16)
+    for d0 in range(0, n, 256):
+        basis[d0:d0 + 256] = rng.standard_normal((min(256, n - d0), R, B, n_po), dtype=np.float32)
+    basis[:, 0] = np.abs(basis[:, 0]) + 2.0             # a positive leading component
+    rgbs = [(0.3, 1.1, 4.0), (0.41, 1.5, 5.5), (0.05, 0.6, 2.5), (1.5, 3.0, 9.0), (0.2, 0.9, 3.3)][:args.colours]
+    facts = {"table": f"{args.res:g} deg, extruded (silk/cotton) layout, band {B}", "directions": n,
+             "bins_per_channel": n * B * n_po, "levels_bytes": 4 * n * K * B * n_po, "basis_rank": R,
+             "basis_bytes": basis.nbytes}
+    runs: list[dict[str, Any]] = []
+    diffs = {"levels": 0.0, "basis": 0.0}
+
+    def levels(mod, rgb):
+        return mod.recolour_p(p, lb, scale, dom, syn.levels, rgb)
+
+    def basis_path(mod, rgb):
+        coef = rng_c.standard_normal((n, 3, R)).astype(np.float32) * 0.1
+        coef[:, :, 0] = 1.0 + 0.1 * np.asarray(rgb, np.float32)
+        return mod.recolour_basis(basis, coef, dom)
+
+    for path, fn in [(q, f) for q, f in (("levels", levels), ("basis", basis_path)) if q in paths]:
+        for k, rgb in enumerate(rgbs):                 # the first colour warms up (compiles) each
+            outs = {}
+            for name, mod in (("old", old), ("new", new)) if k % 2 == 0 else (("new", new), ("old", old)):
+                rng_c = np.random.default_rng(k)
+                la = os.getloadavg()[0]
+                r, out = _timed(lambda: fn(mod, rgb))
+                outs[name] = out[:max(1, n // 8)].copy()     # compared on an eighth: memory
+                del out
+                runs.append({"path": path, "code": name, "rgb": rgb, "warm": k > 0, "load_1min": la, **r})
+                print(f"{path} {name} {rgb}: wall {r['wall']:.3f} s, cpu {r['cpu']:.3f} s, "
+                      f"kernels {r['kernel_total_s']:.3f} s {r['kernels_s']}, load {la:.1f}", flush=True)
+            ref = outs["old"]
+            big = ref > 1e-6 * ref.max()
+            diffs[path] = max(diffs[path], float((np.abs(outs["new"] - ref)[big] / ref[big]).max()))
+            del outs, ref, big
+            gc.collect()
+    summary = {}
+    for path in paths:
+        for name in ("old", "new"):
+            w = [r for r in runs if r["path"] == path and r["code"] == name and r["warm"]]
+            summary[f"{path}_{name}"] = {q: float(np.median([r[q] for r in w]))
+                                         for q in ("wall", "cpu", "kernel_total_s", "load_1min")}
+        o, nw = summary[f"{path}_old"], summary[f"{path}_new"]
+        summary[f"{path}_ratio_new_over_old"] = {q: nw[q] / o[q] for q in ("wall", "cpu", "kernel_total_s")}
+    rec.doc["results"] = {"facts": facts, "versus": args.versus, "runs": runs, "median_warm": summary,
+                          "max_rel_diff_new_vs_old": diffs}
+    print(json.dumps(summary, indent=1), flush=True)
+    rec.finish(results_path(args, "recolour_kernel_versus"))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = bench_parser(__doc__)
-    return cmd_recolour_kernel(ap.parse_args(argv))
+    ap.add_argument("--versus", metavar="REV", help="time against the kernels of this git revision, side by side")
+    ap.add_argument("--res", type=float, default=2.0, help="bin size of the --versus table (deg)")
+    ap.add_argument("--paths", default="levels,basis", help="the --versus paths timed (levels, basis)")
+    ap.add_argument("--colours", type=int, default=5, help="RGB colours per --versus path (the first warms up)")
+    args = ap.parse_args(argv)
+    return cmd_versus(args) if args.versus else cmd_recolour_kernel(args)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ stage, so the timing is of a correct result.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -19,47 +20,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
-
-def one_prim_stage(path: Path, n: int) -> None:
-    import usdfiber  # noqa: F401
-    from pxr import Usd, UsdGeom, Vt
-
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-    c = UsdGeom.BasisCurves.Define(stage, "/World/Fibers")
-    c.GetPrim().ApplyAPI("FiberAPI")
-    c.GetPrim().GetAttribute("fiber:diameter").Set(18.0)
-    c.CreateBasisAttr("bspline")
-    rng = np.random.default_rng(1)
-    base = rng.uniform(-10, 10, (n, 1, 3)).astype(np.float32)
-    pts = base + np.linspace(0, 1, 8, dtype=np.float32)[None, :, None] * np.float32([0, 5, 0])
-    pts[n // 2, 3] = np.nan  # one seeded error
-    c.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.reshape(-1, 3)))
-    c.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(n, 8, np.int32)))
-    c.CreateWidthsAttr(Vt.FloatArray([0.018]))
-    c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
-    stage.Save()
-
-
-def many_prims_stage(path: Path, n: int) -> None:
-    parts = ['#usda 1.0\n(\n    metersPerUnit = 0.001\n)\ndef Xform "World"\n{\n']
-    body = """    def BasisCurves "F{i}" (prepend apiSchemas = ["FiberAPI"])
-    {{
-        uniform token basis = "bspline"
-        int[] curveVertexCounts = [4]
-        point3f[] points = [(0, 0, {i}), (1, 1, {i}), (2, 1, {i}), (3, 0, {i})]
-        float[] widths = [0.018] (interpolation = "constant")
-        uniform float fiber:diameter = 18
-        float fiber:dye:depthOfShade = {shade}
-        token fiber:dye:class = "reactive"
-    }}
-"""
-    for i in range(n):
-        parts.append(body.format(i=i, shade=12 if i == n // 2 else 1 + i % 4))  # one seeded error
-    parts.append("}\n")
-    path.write_text("".join(parts))
+def _stages():
+    """The stage builders the test suite's 100k-curve runs use (``tests/validation/large_stages.py``,
+    loaded by path: the benchmarks do not import the tests as a package)."""
+    path = Path(__file__).resolve().parent.parent / "tests" / "validation" / "large_stages.py"
+    spec = importlib.util.spec_from_file_location("large_stages", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)  # type: ignore[union-attr]
+    return mod
 
 
 def run_check(path: Path) -> tuple[float, dict]:
@@ -76,12 +45,15 @@ def main() -> int:
     ap.add_argument("--curves", type=int, default=100_000)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "check.json")
     args = ap.parse_args()
+    stages = _stages()
+    n = args.curves
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for layout, make, ext in (("one prim", one_prim_stage, "usdc"),
-                                  ("one prim per curve", many_prims_stage, "usda")):
+        # One seeded error in each stage: a NaN point, an out-of-range depth of shade.
+        for layout, make, ext in (("one prim", lambda p: stages.curves_in_one_prim(p, n, nan_curve=n // 2), "usdc"),
+                                  ("one prim per curve", lambda p: stages.curves_as_prims(p, n, bad_every=n), "usda")):
             path = Path(tmp) / f"stage.{ext}"
-            make(path, args.curves)
+            make(path)
             wall, report = run_check(path)
             problems = report["stages"][0]["problems"]
             codes = sorted({p["code"] for p in problems})

@@ -119,7 +119,7 @@ def build_stage(spec: dict[str, Any]):
 
     from usdfiber import cloth
 
-    stage = _new_stage()
+    stage = new_stage()
     UsdGeom.Xform.Define(stage, "/Cloth")
     kw = dict(yarn=spec["yarn"], dye=DYE, depth_of_shade=DEPTH_OF_SHADE)
     info: dict[str, Any] = {}
@@ -147,7 +147,8 @@ def build_stage(spec: dict[str, Any]):
     return stage, info
 
 
-def _new_stage():
+def new_stage():
+    """An empty in-memory stage in millimetres, Z up (the benchmarks' cloth stages)."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.CreateInMemory()
@@ -525,7 +526,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
 
     n = spec["warps"]
     assert spec["kind"] == "weave" and spec["wefts"] == n
-    s2 = _new_stage()
+    s2 = new_stage()
     cloth.plain_weave(s2, "/W", warps=2, wefts=n, yarn=spec["yarn"], dye=DYE, depth_of_shade=DEPTH_OF_SHADE)
     prim = s2.GetPrimAtPath("/W/Warp")
     yp = YarnParams.from_prim(prim)
@@ -537,7 +538,7 @@ def estimate_weave(spec: dict[str, Any], lod_scales: list[float]) -> dict[str, A
     r = 0.5 * float(prim.GetAttribute("widths").Get()[0])
     lo = np.array([cp[:, 1].min() - r, cp[:, 1].min() - r, cp[:, 2].min() - r])
     hi = np.array([cp[:, 1].max() + r, cp[:, 1].max() + r, cp[:, 2].max() + r])
-    cam_stage = _new_stage()
+    cam_stage = new_stage()
     info = dress(cam_stage, spec, lo, hi)
     cam = list(spec["cameras"])[0]
     w, h = spec["res"]

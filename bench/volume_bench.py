@@ -7,8 +7,12 @@ spp and image error against explicit fibers (Figure 7 swatch) or the far field (
                                         [--bricks 0,4,16] [--fine 2] --save IMAGES.npz > RUN.json
     python bench/volume_bench.py swatch-errors --inputs RUN.json,IMAGES.npz,... [--budgets 10,30,100]
     python bench/volume_bench.py shirt-render [--yarns 500] [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 16]
+                                              [--explicit] [--voxels 0.13,0.065]
     python bench/volume_bench.py bricks [--res 80x30] [--spp 4] [--rounds 2] [--bricks 8,0]
     python bench/volume_bench.py shirt [--yarns 5000] [--voxel-mm 1.04]
+    python bench/volume_bench.py far-field-cause [--yarns 60] [--variants sheer,sparse,warps,single]
+                                                 [--dye disperseBlue|none] [--card 0.5]
+                                                 [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 8]
 
 Timing: CPU seconds of the rendering process (``time.process_time``: all its threads), which a
 shared machine's load changes far less than wall time; wall times are recorded next to them.
@@ -34,8 +38,10 @@ err(T / (CPU s per spp)) (:func:`equal_time`). Also the image mean and the mean 
 ``shirt-render``: a piece of bench/cloth_bench.py's shirt panel (Skala 360 plain weave, the
 panel's yarn and spacing; ``--yarns`` warps and as many wefts) at ``--res`` as the yarn far field
 (the reference, at ``--ref-passes``) and as a volume (voxels of ``--voxel-mm``, default the pixel
-footprint). Explicit fibers do not fit the machine at the scale of the panel (bench/REPORT.md,
-"Garment scale"); ``--explicit`` adds them for small pieces.
+footprint; ``--voxels`` a list of them). Explicit fibers do not fit the machine at the scale of
+the panel (bench/REPORT.md, "Garment scale"); ``--explicit`` adds them for small pieces, and
+then they are the reference. Per mode also the mean over the cloth only (``--cloth-box``) and
+the volume's homogenization warnings (the predicted excess opacity).
 
 ``bricks``: the speed of bricks: the Figure 7 volume (the 320 x 120 view's 0.0713 mm voxels)
 in bricks of ``--bricks`` voxels and as one medium (0), rendered alternately at a low
@@ -46,6 +52,9 @@ collisions per ray length (:func:`usdfiber.translators.mitsuba.volume.medium.col
 voxelized from the yarn density at the footprint of a 640-pixel view of the whole panel
 (1.04 mm): time, pieces, grid bytes. ``--yarns N`` voxelizes N full-length warps and
 extrapolates linearly to the panel's 5,000 yarns (the cost is per yarn length).
+
+``far-field-cause``: the yarn far field against explicit fibers on the sheer weave and on
+variants without neighbours or crossings (:func:`part_far_field_cause`).
 
 Prints one JSON object (progress per mode on stderr).
 """
@@ -403,31 +412,137 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
     bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
     cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
     images: dict[str, np.ndarray] = {}
-    modes: list[tuple[str, dict[str, Any]]] = [("far field", dict(cloth="fibers", lod_scale=1.0)),
-                                               ("volume", dict(cloth="volume", voxel_size=args.voxel_mm))]
+    modes: list[tuple[str, dict[str, Any]]] = [("far field", dict(cloth="fibers", lod_scale=1.0))]
     if args.explicit:
         modes.append(("fibers", dict(cloth="fibers", lod_scale=0.0)))
+    voxels = [float(v) for v in args.voxels.split(",") if v] if args.voxels else [args.voxel_mm]
+    for v in voxels:
+        modes.append(("volume" if v is None else f"volume, {v:g} mm", dict(cloth="volume", voxel_size=v)))
+    reference = "fibers" if args.explicit else "far field"
     for mode, kw in modes:
         tr, imgs, rec = time_mode(mi, stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
                                                           camera="/Cams/whole", **kw), args.spp, args.passes)
         images[mode] = imgs
-        rec.update(counts=dict(tr.counts), warnings=list(tr.warnings)[:8])
-        if mode == "far field":
+        rec.update(counts=dict(tr.counts), warnings=list(tr.warnings)[:8],
+                   homogenization=[w for w in tr.warnings if "over the gaps" in w])
+        if mode == reference:
             images["reference"], rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
             out["reference_cpu_s"] = float(np.sum(rcpu))
         out["modes"][mode] = rec
         print(mode, json.dumps(rec, default=float), file=sys.stderr, flush=True)
         del tr
+    r0, r1, c0_, c1_ = (int(v) for v in args.cloth_box.split(","))
+    ref_cloth = images["reference"].mean(axis=0)[r0:r1, c0_:c1_]
     for mode, rec in out["modes"].items():
         rec["errors"] = mode_errors(images[mode], images["reference"], args.spp, rec["cpu_s_per_spp"])
+        # The cloth only (--cloth-box rows, columns): the mean and per channel against the reference's.
+        cl = images[mode].mean(axis=0)[r0:r1, c0_:c1_]
+        per_pass = images[mode][:, r0:r1, c0_:c1_].mean(axis=(1, 2, 3))
+        rec["cloth_mean_rel"] = float(cl.mean() / ref_cloth.mean() - 1.0)
+        rec["cloth_mean_rel_se"] = float(np.std(per_pass, ddof=1) / np.sqrt(len(per_pass)) / ref_cloth.mean())
+        rec["cloth_rgb_rel"] = [float(cl[..., k].mean() / ref_cloth[..., k].mean() - 1.0) for k in range(3)]
+    out["reference"] = reference
+    out["cloth_box_rows_cols"] = [r0, r1, c0_, c1_]
     if args.save:
         np.savez_compressed(args.save, **images)
     return out
 
 
+def part_far_field_cause(args: argparse.Namespace) -> dict[str, Any]:
+    """The far field's excess on a sheer weave, isolated: the same Skala 360 yarns and framing
+    (bench/cloth_bench.py's card and camera, yarns about ``--res``'s 0.9 px), as explicit fibers
+    (the reference) and as the yarn far field, in variants that keep or remove what lies
+    between the yarns: ``sheer`` (``--yarns`` warps and wefts 2.5 diameters apart, the shirt
+    panel's weave), ``sparse`` (a quarter of them, 10 diameters apart: no neighbour within
+    reach, crossings 4x rarer), ``warps`` (the sheer weave's warps alone: no crossings) and
+    ``single`` (one warp). Per variant: the mean over the cloth's pixels (the projected
+    rectangle, bench/cloth_bench.py's ``cloth_mask``) relative to the explicit fibers', per
+    channel, and relative to what the yarns add over the bare card (``(far - explicit) /
+    (explicit - card)``: the far field's error in the yarns' own light)."""
+    import usdfiber  # noqa: F401  (registers the schemas first)
+    from pxr import Gf, UsdGeom
+
+    from cloth_bench import new_stage, cloth_mask, dress
+    from usdfiber import cloth, presets
+    from usdfiber.backend import mitsuba
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.settings import BakeSettings
+
+    mi = mitsuba()
+    from usdfiber.translators.mitsuba.scene import SceneOptions, translate_stage
+
+    w, h = (int(v) for v in args.res.split("x"))
+    bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
+    cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
+    d = presets.yarn_preset("Skala 360").yarn_diameter_mm
+    n = args.yarns
+    span = (n - 1) * 2.5 * d                        # every variant spans the sheer weave's size
+    k = max(2, n // 4)
+    # (warps, wefts, spacing mm, prim hidden)
+    variants = {"sheer": (n, n, 2.5 * d, None), "sparse": (k, k, span / (k - 1), None),
+                "warps": (n, n, 2.5 * d, "Weft"), "single": (1, n, 2.5 * d, "Weft")}
+    chosen = [v for v in args.variants.split(",") if v] or list(variants)
+    out: dict[str, Any] = {"res": [w, h], "spp_per_pass": args.spp, "passes": args.passes,
+                           "reference_passes": args.ref_passes, "yarn_diameter_mm": d, "dye": args.dye,
+                           "card": args.card, "variants": {}}
+    for name in chosen:
+        warps, wefts, spacing, hide = variants[name]
+        stage = new_stage()
+        UsdGeom.Xform.Define(stage, "/Cloth")
+        dyed = dict(dye="disperseBlue", depth_of_shade=1.0) if args.dye == "disperseBlue" else {}
+        cloth.plain_weave(stage, "/Cloth/Weave", warps=warps, wefts=wefts, yarn="Skala 360", spacing=spacing, **dyed)
+        if hide:
+            UsdGeom.Imageable(stage.GetPrimAtPath(f"/Cloth/Weave/{hide}")).MakeInvisible()
+        lo = np.array([-d, -d, -d])
+        hi = np.array([span + d, span + d, d])     # the sheer weave's box: the same framing for all
+        spec = {"yarn": "Skala 360", "res": [w, h], "cameras": {"whole": 1.0}}
+        info = dress(stage, spec, lo, hi)
+        UsdGeom.Mesh(stage.GetPrimAtPath("/Card")).CreateDisplayColorAttr([Gf.Vec3f(args.card, args.card, args.card)])
+        mask = cloth_mask(stage, "/Cams/whole", lo.tolist(), hi.tolist(), w, h)
+        rec: dict[str, Any] = {"warps": warps, "wefts": wefts, "spacing_mm": spacing, "hidden": hide,
+                               "yarn_px_at_centre": info["cameras"]["whole"]["yarn_px_at_centre"], "modes": {}}
+        imgs: dict[str, np.ndarray] = {}
+        for mode, kw, passes in (("explicit", dict(lod_scale=0.0), args.ref_passes),
+                                 ("far field", dict(lod_scale=1.0), args.passes)):
+            c0 = time.process_time()
+            tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
+                                                     camera="/Cams/whole", **kw))
+            imgs[mode], cpu, _ = render_passes(mi, tr.scene, args.spp, passes, 1 if mode == "explicit" else 500)
+            rec["modes"][mode] = {"translate_cpu_s": time.process_time() - c0 - float(np.sum(cpu)),
+                                  "cpu_s_per_spp": float(np.median(cpu)) / args.spp,
+                                  "counts": {k: v for k, v in tr.counts.items()
+                                             if k in ("fiber_curves", "fiber_segments", "yarn_far_fields")}}
+            del tr
+        for p in ("/Cloth/Weave/Warp", "/Cloth/Weave/Weft"):
+            UsdGeom.Imageable(stage.GetPrimAtPath(p)).MakeInvisible()
+        tr = translate_stage(stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
+                                                 camera="/Cams/whole"))
+        card, _, _ = render_passes(mi, tr.scene, args.spp, 2, 900)
+        ex, ff, cd = (imgs["explicit"].mean(axis=0), imgs["far field"].mean(axis=0), card.mean(axis=0))
+        m3 = mask[..., None]
+
+        def cloth_mean(a: np.ndarray, k: int | None = None) -> float:
+            a = a if k is None else a[..., k:k + 1]
+            return float((a * m3).sum() / (m3.sum() * a.shape[-1]))
+
+        def se(passes_: np.ndarray) -> float:
+            per = np.array([cloth_mean(p_) for p_ in passes_])
+            return float(per.std(ddof=1) / np.sqrt(len(per)))
+
+        rec["cloth_pixels"] = int(mask.sum())
+        rec["cloth_mean"] = {"explicit": cloth_mean(ex), "far field": cloth_mean(ff), "card": cloth_mean(cd),
+                             "explicit_se": se(imgs["explicit"]), "far_field_se": se(imgs["far field"])}
+        rec["far_vs_explicit"] = cloth_mean(ff) / cloth_mean(ex) - 1.0
+        rec["far_vs_explicit_rgb"] = [cloth_mean(ff, k) / cloth_mean(ex, k) - 1.0 for k in range(3)]
+        rec["far_error_in_yarn_light"] = (cloth_mean(ff) - cloth_mean(ex)) / (cloth_mean(ex) - cloth_mean(cd))
+        out["variants"][name] = rec
+        print(name, json.dumps(rec, default=float), file=sys.stderr, flush=True)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render"))
+    ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render", "far-field-cause"))
     ap.add_argument("--res", default=None, help="swatch: 160x60; shirt-render: 160x120; bricks: 80x30")
     ap.add_argument("--spp", type=int, default=None,
                     help="swatch, shirt-render: samples per pass (2); bricks: per render (4)")
@@ -444,7 +559,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--voxel-mm", type=float, default=None,
                     help="voxel edge, mm (shirt: 1.04, the 640-pixel view's footprint; "
                          "bricks: 0.0713, the 320 x 120 one's)")
-    ap.add_argument("--explicit", action="store_true", help="shirt-render: also explicit fibers (small pieces only)")
+    ap.add_argument("--explicit", action="store_true",
+                    help="shirt-render: also explicit fibers, then the reference (small pieces only)")
+    ap.add_argument("--voxels", default="", help="shirt-render: volume voxel edges in mm, comma separated "
+                                                 "(default: --voxel-mm, else the pixel footprint)")
+    ap.add_argument("--cloth-box", default="30,110,30,130",
+                    help="shirt-render: rows r0,r1 and columns c0,c1 of the cloth-only region")
+    ap.add_argument("--dye", default="disperseBlue", choices=("disperseBlue", "none"),
+                    help="far-field-cause: the yarns' dye (1 %% disperseBlue, the shirt panel's) or none")
+    ap.add_argument("--card", type=float, default=0.5, help="far-field-cause: the card's reflectance")
+    ap.add_argument("--variants", default="", help="far-field-cause: sheer,sparse,warps,single (default all)")
     ap.add_argument("--rounds", type=int, default=2, help="bricks: alternated timed renders per brick size")
     args = ap.parse_args(argv)
     if args.bricks is None:
@@ -452,12 +576,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.spp is None:
         args.spp = 4 if args.part == "bricks" else 2
     if args.res is None:
-        args.res = {"bricks": "80x30", "shirt-render": "160x120"}.get(args.part, "160x60")
+        args.res = {"bricks": "80x30", "shirt-render": "160x120", "far-field-cause": "160x120"}.get(args.part, "160x60")
     if args.voxel_mm is None and args.part != "shirt-render":     # shirt-render: the pixel footprint
         args.voxel_mm = 0.0713 if args.part == "bricks" else 665.0 / 640.0
     out = {"machine": machine(), "part": args.part, "argv": sys.argv[1:] if argv is None else argv}
     out.update({"swatch": part_swatch, "swatch-errors": part_swatch_errors, "bricks": part_bricks,
-                "shirt": part_shirt, "shirt-render": part_shirt_render}[args.part](args))
+                "shirt": part_shirt, "shirt-render": part_shirt_render,
+                "far-field-cause": part_far_field_cause}[args.part](args))
     out["machine"]["load_average_end"] = os.getloadavg()
     json.dump(out, sys.stdout, indent=1, default=float)
     print()

@@ -39,14 +39,14 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from pxr import Usd
 
-from usdfiber.bake.baker import ProgressFn
+from usdfiber.bake.baker import ProgressFn, is_rotationally_symmetric
 from usdfiber.bake.cache import TableCache, TableCacheWarning, default_cache_dir
 from usdfiber.bake.requests import requests_for_params, requests_for_prim, resolve_table_asset
-from usdfiber.bake.settings import BakeError, BakeSettings
+from usdfiber.bake.settings import BakeError, BakeSettings, render_bake_settings
 from usdfiber.bake.storage import TableLayoutError
 from usdfiber.bake.table import BcsdfTable, Recoloured
 from usdfiber.spec.fiber import FiberParams, FiberParamsError
@@ -64,6 +64,7 @@ __all__ = [
     "TableLayoutError",
     "default_cache_dir",
     "load_table",
+    "render_settings_for",
     "requests_for_prim",
     "tables_for_prim",
 ]
@@ -78,14 +79,24 @@ def load_table(path: str | os.PathLike[str]) -> BcsdfTable:
     return BcsdfTable.load(Path(path))
 
 
-def tables_for_prim(prim: Any, settings: BakeSettings | None = None, bake_missing: bool = True, *,
+def render_settings_for(request: Any, resolution_deg: float | None = None, photons: int | None = None) -> BakeSettings:
+    """The settings of the table ``request`` (a :class:`usdfiber.bake.requests.TableRequest`)
+    when a renderer or material writer bakes it on demand: per fiber,
+    :func:`usdfiber.bake.settings.render_bake_settings` for its cross section (round or not);
+    ``resolution_deg`` and ``photons``, when given, for every fiber."""
+    return render_bake_settings(is_rotationally_symmetric(request.profile()), resolution_deg, photons)
+
+
+def tables_for_prim(prim: Any, settings: BakeSettings | Callable[[Any], BakeSettings] | None = None,
+                    bake_missing: bool = True, *,
                     cache: TableCache | None = None, time: Any = None,
                     progress: ProgressFn | None = None) -> list[BcsdfTable]:
     """The tables of a fiber prim: one per cross-section variant, in variant order.
 
     A prim whose ``fiber:table`` names a readable table baked for its parameters uses that
     one table for all its fibers. Otherwise the tables come from ``cache`` (default:
-    :func:`default_cache_dir`) by key, baked with ``settings`` when missing; with
+    :func:`default_cache_dir`) by key, baked with ``settings`` when missing (or a function of
+    the table request giving them, e.g. :func:`render_settings_for`); with
     ``bake_missing=False`` a missing table raises MissingTableError. A damaged, missing or
     stale ``fiber:table`` is warned about and replaced by the cache's tables.
     """
@@ -106,9 +117,9 @@ def tables_for_prim(prim: Any, settings: BakeSettings | None = None, bake_missin
             warnings.warn(f"{prim.GetPath()}: fiber:table {path} was baked for other parameters; "
                           f"using the cache", RuntimeWarning, stacklevel=2)
     cache = cache or TableCache()
-    st = settings or BakeSettings()
     out = []
     for req in requests_for_params(params, str(prim.GetPath())):
+        st = settings(req) if callable(settings) else settings or BakeSettings()
         res = cache.get_or_bake(req, st, progress, bake_missing=bake_missing)
         if res is None:
             raise MissingTableError(

@@ -207,3 +207,15 @@ def test_cache_refuses_a_mismatched_compressed_table(compressed, tmp_path):
     assert not bad.exists()
     good = rewrite(path, tmp_path / "good.npz")
     assert TableCache(tmp_path).load_verified(good, BcsdfTable.load, lambda t: True).compressed
+
+
+@pytest.mark.skipif(not kernel_mod.available(), reason="Dr.Jit has no LLVM backend here")
+def test_kernel_launches_split_by_direction_give_the_same_table(compressed, monkeypatch):
+    """Large compressed tables are recoloured in several launches (32-bit indices): the same
+    values as one launch."""
+    c, path = compressed
+    whole = c.recolour([0.3, 5.0, 90.0], kernel=True).p.copy()
+    R, B, n_po = c.arrays["basis"].shape[2:]
+    monkeypatch.setattr(kernel_mod, "_MAX_ELEMENTS", 3 * max(R, 3) * B * n_po)
+    split = BcsdfTable.load(path).recolour([0.3, 5.0, 90.0], kernel=True).p
+    np.testing.assert_array_equal(split, whole)

@@ -15,7 +15,7 @@ import pytest
 import usdfiber  # noqa: F401 - registers the schema
 from usdfiber.bake.baker import table_directions
 from usdfiber.bake.cache import TableCache
-from usdfiber.bake.cost import estimate, estimate_request, probe
+from usdfiber.bake.cost import PROBE_LAUNCH_PHOTONS, estimate, estimate_request, launch_model, launch_shape, probe
 from usdfiber.bake.requests import requests_from_preset
 from usdfiber.bake.settings import BakeSettings, directions_per_group
 
@@ -87,6 +87,32 @@ def test_target_error_predicts_photons_from_the_probe_error(silk_bake):
     need = (pr.error_constant / 0.05) ** 2
     assert need <= tight.photons_per_direction <= 1.05 * need + 1000
     assert capped.photons_per_direction == 100_000
+
+
+def test_launch_model_is_the_line_through_two_launches_bounded_against_noise():
+    """t(N) = a + N / rate through two timed launches (in either order); timings that noise
+    put out of order or too close give the larger launch's mean rate or at most 4 times it,
+    never a negative fixed cost or an unbounded rate."""
+    a, rate = launch_model(100_000, 0.5 + 100_000 / 1e6, 250_000, 0.5 + 250_000 / 1e6)
+    assert a == pytest.approx(0.5) and rate == pytest.approx(1e6)
+    assert launch_model(250_000, 0.5 + 250_000 / 1e6, 100_000, 0.5 + 100_000 / 1e6) == pytest.approx((a, rate))
+    assert launch_model(100_000, 1.0, 250_000, 0.9) == (0.0, pytest.approx(250_000 / 0.9))
+    a, rate = launch_model(100_000, 1.0, 250_000, 1.0 + 1e-12)
+    assert rate == pytest.approx(4 * 250_000 / 1.0) and a == pytest.approx(0.75)
+    assert launch_model(1000, 0.2, 1000, 0.3) == (0.0, pytest.approx(1000 / 0.3))
+
+
+def test_timed_launch_is_shaped_like_the_bakes():
+    """The probe's timed launch: the bake's photons per batch for as many directions as make
+    PROBE_LAUNCH_PHOTONS, within a group and the table's directions."""
+    default = BakeSettings()                                     # 125k photons per batch
+    assert launch_shape(default, 45) == (PROBE_LAUNCH_PHOTONS // 125_000, 125_000)
+    render = BakeSettings(resolution_deg=6, photons=100_000, batches=4)
+    assert launch_shape(render, 900) == (PROBE_LAUNCH_PHOTONS // 25_000, 25_000)
+    assert launch_shape(render, 3) == (3, 25_000)
+    huge = BakeSettings(photons=16_000_000, batches=4)             # one direction fills a launch
+    assert launch_shape(huge, 8100) == (1, PROBE_LAUNCH_PHOTONS)
+    assert launch_shape(SMALL, 144) == (min(directions_per_group(SMALL), 144), 1000)
 
 
 def test_dry_run_prints_time_and_size_of_each_missing_table(tmp_path):

@@ -138,3 +138,24 @@ def test_bad_absorption_is_refused():
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="absorption"):
             t.recolour(bad, kernel=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_channels_of_one_launch_equal_separate_launches(seed):
+    """A launch computes every channel in its own lanes (level, Hermite and tangent channels
+    side by side, as in the compressor's batches of 8): each channel equals that absorption
+    recoloured alone, value for value, and the float64 reference to float32 rounding."""
+    t = synthetic(seed)
+    n_ti, n_pi, K, B, n_po = t.arrays["p"].shape
+    n = n_ti * n_pi
+    sigmas = [64.0, 0.3, 400.0, 0.0, 2.7, 100.0, 0.125, 13.0]      # level, hermite, tangent, ...
+    args = (t.arrays["p"].reshape(n, K, B, n_po), t.arrays["lbar"].reshape(n, K, B, n_po),
+            (t.arrays["p_scale"].astype(np.float64) * t.arrays["albedo"]).reshape(n, K),
+            t.domega_band().reshape(n, B), t.levels)
+    together = kernel_mod.recolour_p(*args, sigmas)
+    assert together.shape == (n, B, n_po, len(sigmas))
+    for c, s in enumerate(sigmas):
+        alone = kernel_mod.recolour_p(*args, [s])[..., 0]
+        np.testing.assert_array_equal(together[..., c], alone, err_msg=f"channel {c} (sigma {s})")
+        assert_same(together[..., c].reshape(n_ti, n_pi, B, n_po, 1), t._p_reference(s)[..., None],
+                    f"sigma {s}")

@@ -25,7 +25,7 @@ from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
 from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 from usdfiber.translators.mitsuba.lod import LodPolicy
 from usdfiber.translators.mitsuba.yarn_far_field import (YARN_LEVELS, YarnBakeSettings, bake_yarn_far_field,
-                                                         trace_far_field, yarn_piece)
+                                                         far_field_pieces, trace_far_field)
 
 mi = mitsuba()
 
@@ -49,17 +49,20 @@ def levels_far_field(silk_render_table):
 
 
 def _direct(table, sigma, seed: int):
-    """The far field traced in one colour (the tracer's own dyed weights), on the same piece,
+    """The far field traced in one colour (the tracer's own dyed weights), on the same pieces,
     fiber variants and rotations as :func:`bake_yarn_far_field` draws, with other photons."""
     yp = _small_yarn()
-    piece = yarn_piece(replace(yp, seed=ST.seed), FIBER_D, ST)
-    geom = piece.geometry
+    pieces = far_field_pieces(yp, FIBER_D, ST)
     rng = np.random.default_rng([ST.seed, 0x7A22])
-    variant = rng.integers(0, 1, geom.curve_count)
-    psi = rng.uniform(0.0, 2 * math.pi, geom.curve_count)
-    bsdf = fiber_bsdf(mi, FiberBank.build([FiberSlot(table, tuple(sigma))]), variant[geom.segment_curve],
-                      psi[geom.segment_curve], reference_normals(geom))
-    return trace_far_field(piece, bsdf, replace(ST, seed=seed))
+    bank = FiberBank.build([FiberSlot(table, tuple(sigma))])
+    bsdfs = []
+    for piece in pieces:
+        geom = piece.geometry
+        variant = rng.integers(0, 1, geom.curve_count)
+        psi = rng.uniform(0.0, 2 * math.pi, geom.curve_count)
+        bsdfs.append(fiber_bsdf(mi, bank, variant[geom.segment_curve], psi[geom.segment_curve],
+                                reference_normals(geom)))
+    return trace_far_field(pieces, bsdfs, replace(ST, seed=seed))
 
 
 def test_furnace_at_zero_absorption(levels_far_field):

@@ -8,25 +8,17 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import usdfiber  # noqa: F401  (registers the schemas before any stage exists)
-from pxr import Usd, UsdGeom, Vt
-
 from usdfiber.cli import main
 from usdfiber.stage_io import StageOpenError, captured_stderr, open_stage
 from usdfiber.validation.runner import check_stage
 
+from large_stages import HEAD, curves_as_prims, curves_in_one_prim
+
 REPO = Path(__file__).resolve().parents[2]
 BAD = REPO / "tests" / "corpus" / "bad"
-
-HEAD = """#usda 1.0
-(
-    metersPerUnit = 0.001
-    upAxis = "Y"
-)
-"""
 
 
 def fiber_prim(name: str, extra: str = "", width: float = 0.01) -> str:
@@ -259,36 +251,10 @@ def test_examples_check_clean(capfd):
 # 100k curves: as 100k prims and as one prim (correctness runs; timings are printed)
 # --------------------------------------------------------------------------------------
 
-def _many_prims_usda(path: Path, n: int) -> None:
-    parts = [HEAD, 'def Xform "World"\n{\n']
-    body = """    def BasisCurves "F{i}" (
-        prepend apiSchemas = ["FiberAPI"]
-    )
-    {{
-        uniform token basis = "bspline"
-        int[] curveVertexCounts = [4]
-        point3f[] points = [(0, 0, {i}), (1, 1, {i}), (2, 1, {i}), (3, 0, {i})]
-        float[] widths = [0.018] (
-            interpolation = "constant"
-        )
-        uniform token fiber:kind = "cotton"
-        uniform float fiber:diameter = 18
-        token fiber:dye:class = "reactive"
-        color3f fiber:dye:extinction = (0.001, 0.012, 0.012)
-        float fiber:dye:depthOfShade = {shade}
-    }}
-"""
-    for i in range(n):
-        # Every 1000th fiber has an out-of-range depth of shade.
-        parts.append(body.format(i=i, shade=12 if i % 1000 == 999 else 1 + (i % 4)))
-    parts.append("}\n")
-    path.write_text("".join(parts))
-
-
 @pytest.mark.slow  # about a minute on 2 cores; timings: bench/check_bench.py
 def test_100k_fiber_prims(tmp_path, capsys):
     path = tmp_path / "many.usda"
-    _many_prims_usda(path, 100_000)
+    curves_as_prims(path, 100_000, bad_every=1000)
     t0 = time.perf_counter()
     report = check_stage(path)
     elapsed = time.perf_counter() - t0
@@ -301,22 +267,8 @@ def test_100k_fiber_prims(tmp_path, capsys):
 
 
 def test_100k_curves_in_one_prim(tmp_path, capsys):
-    n = 100_000
     path = tmp_path / "one.usdc"
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-    c = UsdGeom.BasisCurves.Define(stage, "/World/Fibers")
-    c.GetPrim().ApplyAPI("FiberAPI")
-    c.GetPrim().GetAttribute("fiber:diameter").Set(18.0)
-    c.CreateBasisAttr("bspline")
-    rng = np.random.default_rng(1)
-    base = rng.uniform(-10, 10, (n, 1, 3)).astype(np.float32)
-    pts = base + np.linspace(0, 1, 8, dtype=np.float32)[None, :, None] * np.float32([0, 5, 0])
-    c.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.reshape(-1, 3)))
-    c.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(n, 8, np.int32)))
-    c.CreateWidthsAttr(Vt.FloatArray([0.018]))
-    c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
-    stage.Save()
+    curves_in_one_prim(path, 100_000)
     t0 = time.perf_counter()
     report = check_stage(path)
     elapsed = time.perf_counter() - t0

@@ -13,14 +13,17 @@ the looks as a standalone MaterialX document. Every MaterialX document is valida
 MaterialX's ``validate()``.
 
 Tables missing from the cache (``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else
-``~/.cache/usdfiber``) are baked at the render's quality (``--bake-resolution`` 6 degrees,
-``--bake-photons`` 100000) unless ``--no-bake``; fits are cached beside them.
+``~/.cache/usdfiber``) are baked at the render's quality, per fiber
+(:func:`usdfiber.bcsdf.render_settings_for`: 2 degrees for round fibers, 6 for
+others, 100000 photons; ``--bake-resolution`` and ``--bake-photons`` set them for every
+fiber) unless ``--no-bake``; fits are cached beside them.
 
 Exit status: 0 written, 2 bad input (one line on stderr).
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -40,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mtlx", default=None, metavar="FILE", help="also write a standalone .mtlx document")
     p.add_argument("--cache-dir", default=None, metavar="DIR", help="table cache (default: the user's)")
     p.add_argument("--bake-resolution", type=finite_float, default=None, metavar="DEG",
-                   help="bin size of tables baked here (default: 6)")
+                   help="bin size of tables baked here (default: the render's, 2 for round fibers, 6 for others)")
     p.add_argument("--bake-photons", type=int, default=None, metavar="N",
                    help="photons per direction of tables baked here (default: 100000)")
     p.add_argument("--no-bake", action="store_true", help="fail instead of baking missing tables")
@@ -59,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from usdfiber.cli import UsageError
     from usdfiber.stage_io import StageOpenError, open_stage
     from usdfiber.translators.materialx.document import DocumentError, look_document, write_document
+    from usdfiber.bake.settings import RENDER_BAKE_SETTINGS
     from usdfiber.translators.materialx.looks import MATERIAL_BAKE_SETTINGS, LookError
     from usdfiber.translators.materialx.usd_material import author_materials
 
@@ -68,13 +72,14 @@ def run(args: argparse.Namespace) -> int:
     except StageOpenError as exc:
         raise UsageError(str(exc)) from None
     settings = MATERIAL_BAKE_SETTINGS
-    try:
-        if args.bake_resolution is not None:
-            settings = replace(settings, resolution_deg=args.bake_resolution)
-        if args.bake_photons is not None:
-            settings = replace(settings, photons=args.bake_photons)
-    except ValueError as exc:
-        raise UsageError(f"bake settings: {exc}") from None
+    if args.bake_resolution is not None or args.bake_photons is not None:
+        try:   # checked here, before any table is looked up
+            replace(RENDER_BAKE_SETTINGS, **({} if args.bake_resolution is None else {"resolution_deg": args.bake_resolution}),
+                    **({} if args.bake_photons is None else {"photons": args.bake_photons}))
+        except ValueError as exc:
+            raise UsageError(f"bake settings: {exc}") from None
+        settings = functools.partial(MATERIAL_BAKE_SETTINGS, resolution_deg=args.bake_resolution,
+                                     photons=args.bake_photons)
 
     if args.output:
         out = Path(args.output)

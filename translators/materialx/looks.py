@@ -25,14 +25,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from usdfiber.bake.settings import RENDER_BAKE_SETTINGS
+from usdfiber.bcsdf import render_settings_for
 from usdfiber.fit import ChiangParams, FitCache, FitResult, FitSettings, fit_tables
 
 __all__ = ["Look", "LookError", "MATERIAL_BAKE_SETTINGS", "MATERIAL_FIT_SETTINGS", "look_of_tables", "mean_colour"]
 
-#: Tables baked for materials: the render's quality (6 degrees, 100k photons per direction),
-#: so that both share the cache.
-MATERIAL_BAKE_SETTINGS = RENDER_BAKE_SETTINGS
+#: Tables baked for materials: the render's, per fiber (a function of the table request,
+#: :func:`usdfiber.bcsdf.render_settings_for`), so that both share the cache.
+MATERIAL_BAKE_SETTINGS = render_settings_for
 #: Fits for materials: Chiang with MaterialX's lobe tints.
 MATERIAL_FIT_SETTINGS = FitSettings(tints=True)
 

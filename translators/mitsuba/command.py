@@ -63,7 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--purpose", action="append", choices=("default", "render", "proxy", "guide"),
                    help="purposes to render (repeatable; default: the render settings' or default+render)")
     p.add_argument("--bake-resolution", type=finite_float, metavar="DEG",
-                   help="bin size of tables baked for this render (default: 6)")
+                   help="bin size of tables baked for this render, for every fiber (default: 2 for round "
+                        "fibers, 6 for others)")
     p.add_argument("--bake-photons", type=positive_int, metavar="N",
                    help="photons per direction of tables baked for this render (default: 100000)")
     p.add_argument("--no-bake", action="store_true", help="fail instead of baking missing tables")

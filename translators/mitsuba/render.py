@@ -30,7 +30,8 @@ from usdfiber.validation.runner import check_stage, format_problem
 
 from usdfiber.translators.mitsuba.device import select_device
 from usdfiber.translators.mitsuba.errors import RenderRefused, TranslateError
-from usdfiber.translators.mitsuba.scene import AOVS, RENDER_BAKE_SETTINGS, SceneOptions, translate_stage
+from usdfiber.translators.mitsuba.scene import AOVS, SceneOptions, bake_settings_for, render_bake, translate_stage
+from usdfiber.translators.mitsuba.table_plan import PlannedTableCache
 from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
 
 __all__ = ["RenderJob", "RenderRefused", "RenderResult", "render_stage"]
@@ -121,12 +122,8 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
     warnings = _validate(stage, job.stage, job.frame, job.warnings_as_errors)
     times["validate"] = time.perf_counter() - t0
 
-    bake = RENDER_BAKE_SETTINGS
     try:
-        if job.bake_resolution_deg is not None:
-            bake = replace(bake, resolution_deg=float(job.bake_resolution_deg))
-        if job.bake_photons is not None:
-            bake = replace(bake, photons=int(job.bake_photons))
+        bake = render_bake(job.bake_resolution_deg, job.bake_photons)
         yarn_bake = YarnBakeSettings()
         if job.yarn_resolution_deg is not None:
             yarn_bake = replace(yarn_bake, resolution_deg=float(job.yarn_resolution_deg))
@@ -134,10 +131,12 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
             yarn_bake = replace(yarn_bake, photons=int(job.yarn_photons))
     except (BakeError, ValueError) as exc:
         raise RenderRefused(str(exc)) from None
-    bakes = _bake_estimates(stage, job, bake, log) if job.bake_missing else []
+    # The cache lookups made for the estimates serve the translation's (table_plan.py).
+    cache = PlannedTableCache()
+    bakes = _bake_estimates(stage, job, bake, log, cache) if job.bake_missing else []
     opts = SceneOptions(time=job.frame, resolution=job.resolution, spp=job.spp, camera=job.camera,
                         render_settings=job.render_settings, seed=job.seed, max_depth=job.max_depth,
-                        purposes=job.purposes, bake=bake, bake_missing=job.bake_missing,
+                        purposes=job.purposes, bake=bake, bake_missing=job.bake_missing, cache=cache,
                         lod_scale=job.lod_scale, yarn_bake=yarn_bake, cloth=job.cloth,
                         memory_budget=budget, alpha=True, aovs=tuple(job.aovs), model=job.model)
     try:
@@ -215,22 +214,21 @@ def render_stage(job: RenderJob, log: TextIO = sys.stderr,
                         far_fields=list(tr.fibers.far_fields) if tr.fibers is not None else [])
 
 
-def _bake_estimates(stage: Any, job: RenderJob, bake: Any, log: TextIO) -> list[dict[str, Any]]:
-    """The estimated cost of each fiber table the render will bake (none serves it in the
-    cache), printed on ``log`` before any is baked; [] when the stage's fibers cannot be read
-    (the translation reports why)."""
+def _bake_estimates(stage: Any, job: RenderJob, bake: Any, log: TextIO,
+                    cache: PlannedTableCache) -> list[dict[str, Any]]:
+    """The estimated cost of each fiber table the render will bake (none serves it in
+    ``cache``, which keeps its lookups for the translation), printed on ``log`` before any
+    is baked; [] when the stage's fibers cannot be read (the translation reports why)."""
     from pxr import Usd
 
-    from usdfiber.bake.cache import TableCache
     from usdfiber.bake.cost import estimate_request, format_seconds, total
     from usdfiber.bake.requests import tables_for_stage
     from usdfiber.memory_budget import format_bytes
 
-    cache = TableCache()
     try:
         reqs = tables_for_stage(stage, Usd.TimeCode(job.frame) if job.frame is not None else None)
-        missing = [r for r in reqs if cache.find_serving(r, bake) is None]
-        estimates = [estimate_request(r, bake, cache) for r in missing]
+        missing = cache.plan(reqs, lambda r: bake_settings_for(bake, r))
+        estimates = [estimate_request(r, bake_settings_for(bake, r), cache) for r in missing]
     except (BakeError, ValueError):
         return []
     for e in estimates:

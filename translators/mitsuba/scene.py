@@ -17,15 +17,17 @@ Other gprims (spheres, cubes, points, volumes...) are skipped with a warning.
 """
 from __future__ import annotations
 
+import functools
 import time as _time
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Union
 
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdLux
 
 from usdfiber.backend import mitsuba
 from usdfiber.bake.settings import RENDER_BAKE_SETTINGS, BakeSettings
+from usdfiber.bcsdf import render_settings_for
 from usdfiber.bake.cache import TableCache
 from usdfiber.memory_budget import MemoryBudget
 from usdfiber.stage_io import default_render_time, stage_metrics_problems
@@ -44,7 +46,8 @@ from usdfiber.translators.mitsuba.render_settings import RenderSettingsInfo, rea
 from usdfiber.translators.mitsuba.stage_walk import walk
 from usdfiber.translators.mitsuba.yarn_far_field import YarnBakeSettings
 
-__all__ = ["AOVS", "RENDER_BAKE_SETTINGS", "SceneOptions", "Translation", "aov_integrator", "fiber_integrator",
+__all__ = ["AOVS", "RENDER_BAKE_SETTINGS", "BakeChoice", "SceneOptions", "Translation", "aov_integrator",
+           "bake_settings_for", "fiber_integrator", "render_bake",
            "translate_stage"]
 
 
@@ -94,6 +97,27 @@ def aov_integrator(inner: dict[str, Any], aovs: tuple[str, ...]) -> dict[str, An
     return {"type": "aov", "aovs": spec, "image": inner}
 
 
+#: How missing fiber tables are baked: one :class:`BakeSettings` for every table, or a function
+#: of the table request giving them (the default, :func:`usdfiber.bcsdf.render_settings_for`: per fiber).
+BakeChoice = Union[BakeSettings, Callable[[Any], BakeSettings]]
+
+
+def render_bake(resolution_deg: float | None = None, photons: int | None = None) -> BakeChoice:
+    """The render's bake choice: per fiber (:func:`usdfiber.bcsdf.render_settings_for`), with
+    the bin size and photons given (``--bake-resolution``, ``--bake-photons``) for every fiber.
+    Raises BakeError for values no bake accepts, before any table is looked up."""
+    replace(RENDER_BAKE_SETTINGS, **({} if resolution_deg is None else {"resolution_deg": float(resolution_deg)}),
+            **({} if photons is None else {"photons": int(photons)}))       # validates
+    if resolution_deg is None and photons is None:
+        return render_settings_for
+    return functools.partial(render_settings_for, resolution_deg=resolution_deg, photons=photons)
+
+
+def bake_settings_for(choice: BakeChoice, request: Any) -> BakeSettings:
+    """The settings ``choice`` gives the table ``request``."""
+    return choice(request) if callable(choice) else choice
+
+
 @dataclass
 class SceneOptions:
     """How to translate: time code, image, camera, integrator and table settings."""
@@ -106,7 +130,7 @@ class SceneOptions:
     seed: int = 0
     max_depth: int = 32
     purposes: tuple[str, ...] | None = None     # None: render settings' includedPurposes
-    bake: BakeSettings = RENDER_BAKE_SETTINGS
+    bake: BakeChoice = render_settings_for        # missing tables: per fiber (render_settings_for) or fixed
     bake_missing: bool = True
     cache: TableCache | None = None
     pass_through: bool = True

@@ -138,21 +138,22 @@ def _on_dask(scheduler: str, todo: list[RenderJob], summary: FarmSummary, bar: F
     from usdfiber.farm.dask_bake import bake_on_dask
     from usdfiber.stage_io import open_stage
 
-    from usdfiber.translators.mitsuba.scene import RENDER_BAKE_SETTINGS
+    from usdfiber.translators.mitsuba.scene import bake_settings_for, render_bake
 
-    st = RENDER_BAKE_SETTINGS
-    if todo[0].bake_resolution_deg is not None:
-        st = replace(st, resolution_deg=float(todo[0].bake_resolution_deg))
-    if todo[0].bake_photons is not None:
-        st = replace(st, photons=int(todo[0].bake_photons))
+    choice = render_bake(todo[0].bake_resolution_deg, todo[0].bake_photons)
     stage = open_stage(todo[0].stage)
-    reqs = [r for j in todo for r in tables_for_stage(stage, j.frame)]
+    # The render's settings are per fiber: one cluster bake per distinct settings.
+    by_settings: dict[Any, list[Any]] = {}
+    for r in (r for j in todo for r in tables_for_stage(stage, j.frame)):
+        by_settings.setdefault(bake_settings_for(choice, r), []).append(r)
     with LocalFarm(scheduler) as farm:
         summary.scheduler = farm.address
-        baked = bake_on_dask(farm.client, reqs, st, TableCache(), show_progress=False)
-        summary.tables = baked.tables
-        if not baked.ok:
-            raise FarmError(f"the tables could not be baked: {baked.failures[0].line()}")
+        summary.tables = []
+        for st, reqs in by_settings.items():
+            baked = bake_on_dask(farm.client, reqs, st, TableCache(), show_progress=False)
+            summary.tables.extend(baked.tables)
+            if not baked.ok:
+                raise FarmError(f"the tables could not be baked: {baked.failures[0].line()}")
         futs = {farm.client.submit(render_frame, j, summarize, key=_frame_key(j), retries=1, pure=False): j for j in todo}
         summary.workers = len(farm.client.scheduler_info().get("workers", {}))
         for fut in as_completed(list(futs)):

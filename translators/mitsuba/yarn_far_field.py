@@ -19,6 +19,10 @@ Frame and set-up (yarn frame: t = +z the yarn axis, like a fiber table's fiber f
   crossing an end re-enters at the other. The helical structure makes a straight yarn's far
   field, averaged over its length, depend on ``phi_o - phi_i`` only (a rotation about the
   axis is a shift along it), so the table is rotationally symmetric.
+* Several such pieces (``YarnBakeSettings.realizations``, :func:`far_field_pieces`), each its
+  own random placement of the fibers, scaled to one ``R_b``, share the photons: the far field
+  is the structure's, shared by every yarn of it, and one placement of a few dozen fibers is
+  not (its projected width varies by about 5 % from seed to seed).
 * A beam from ``omega_i`` = (theta_i, phi_i) over the whole projected bounding width ``2 R_b``
   (phi_i and the axial position uniformly random). A photon that leaves the bounding cylinder
   without having scattered (missed every fiber, or only passed through profiles narrower than
@@ -67,11 +71,11 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.table import Recoloured
 
 __all__ = ["YARN_LEVELS", "YarnBakeSettings", "YarnFarField", "YarnFarFieldCache", "bake_yarn_far_field",
-           "far_field_entry", "trace_far_field", "yarn_piece"]
+           "far_field_entry", "far_field_pieces", "trace_far_field", "yarn_piece"]
 
 FORMAT_KIND = "usdfiber-yarn-far-field"
-#: 2: traced at absorption levels and recoloured (1 held one traced colour).
-FORMAT_VERSION = 2
+#: 3: traced through several realizations of the yarn (2: one; 1 held one traced colour).
+FORMAT_VERSION = 3
 #: Optical depths across a fiber (``sigma_a D``) at which far fields are traced: the fiber
 #: tables' levels and one more, twelve, so that four RGB fiber BSDFs carry them.
 YARN_LEVELS: tuple[float, ...] = DEFAULT_LEVELS + (128.0,)
@@ -88,7 +92,12 @@ class YarnBakeSettings:
     interactions after which a photon is dropped (its energy is reported as lost);
     ``length_diameters``: the periodic piece's length in bounding diameters (rounded up to a
     whole number of ply twists); ``samples_per_turn``: of the yarn expansion; ``seed``;
-    ``levels``: the fibers' optical depths traced (start at 0, increase, a multiple of three).
+    ``levels``: the fibers' optical depths traced (start at 0, increase, a multiple of three);
+    ``realizations``: pieces expanded with seeds ``seed``, ``seed + 1`` ... that share the
+    photons (:func:`far_field_pieces`): one random placement of a yarn's fibers is not its
+    structure's (the projected width of a 24-fiber Skala 360 piece varies by 5 % from seed to
+    seed; one seed was 8.5 % under the mean, and the far field 6 % too light in attenuation and
+    reflection against the fibers, bench/REPORT.md, "The far field on a sheer weave").
     """
 
     resolution_deg: float = 6.0
@@ -99,9 +108,12 @@ class YarnBakeSettings:
     samples_per_turn: int = 12
     seed: int = 1
     levels: tuple[float, ...] = YARN_LEVELS
+    realizations: int = 8
 
     def __post_init__(self) -> None:
         Grid(self.resolution_deg, False, True)
+        if self.realizations < 1:
+            raise ValueError(f"yarn bake: realizations >= 1, got {self.realizations}")
         if self.photons < self.batches or self.batches < 2:
             raise ValueError("yarn bake needs batches >= 2 and photons >= batches")
         if self.max_bounces < 1 or self.length_diameters <= 0 or self.samples_per_turn < 3:
@@ -292,6 +304,23 @@ def yarn_piece(params: Any, fiber_diameter: float, settings: YarnBakeSettings, s
     return YarnPiece(geom, lz / rb, rb, ex.curve_count)
 
 
+def far_field_pieces(params: Any, fiber_diameter: float, settings: YarnBakeSettings) -> list[YarnPiece]:
+    """``settings.realizations`` pieces of the yarn (:func:`yarn_piece`, seeds ``settings.seed``,
+    ``settings.seed + 1`` ...), scaled to one bounding radius, the largest of theirs, so that
+    one cylinder bounds them all and their coverages are fractions of one width."""
+    pieces = [yarn_piece(replace(params, seed=settings.seed + k), fiber_diameter, settings)
+              for k in range(settings.realizations)]
+    rb = max(pc.bound_radius for pc in pieces)
+    out = []
+    for pc in pieces:
+        f = pc.bound_radius / rb
+        geom = pc.geometry
+        geom.points = geom.points * f
+        geom.radii = geom.radii * f
+        out.append(YarnPiece(geom, pc.length * f, rb, pc.fibers))
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Photon tracing
 # ---------------------------------------------------------------------------------------------
@@ -307,13 +336,15 @@ def _cylinder_exit(ox, oy, dx, dy):
     return np.maximum(t, 0.0)
 
 
-def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
+def trace_far_field(piece: YarnPiece | Sequence[YarnPiece], bsdf: Any, settings: YarnBakeSettings,
                     progress: Callable[[int, int], None] | None = None,
                     header: dict[str, Any] | None = None,
                     levels: Sequence[float] | None = None) -> YarnFarField:
     """Trace ``settings.photons`` photons per theta_i node through ``piece`` whose fibers
     scatter with ``bsdf`` (a :func:`~usdfiber.translators.mitsuba.fiber_bsdf.fiber_bsdf` for the
-    piece's segments) and tabulate the far field (module docstring).
+    piece's segments) and tabulate the far field (module docstring). ``piece`` may be a list of
+    pieces of one bounding radius (:func:`far_field_pieces`), ``bsdf`` then a list of as many
+    (one BSDF or list of BSDFs each): batch b traces its photons through pieces b, b + B ...
 
     ``bsdf`` may be a list of such BSDFs over tables with the same sampling densities (the
     same tables in other colours): the first draws every direction, each gives the weights
@@ -327,7 +358,13 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
     mi = mitsuba()
     import drjit as dr
 
-    bsdfs = list(bsdf) if isinstance(bsdf, (list, tuple)) else [bsdf]
+    # One set of BSDFs per piece (realization); each set is one BSDF or a list of them.
+    pieces = [piece] if isinstance(piece, YarnPiece) else list(piece)
+    sets = [bsdf] if isinstance(piece, YarnPiece) else list(bsdf)
+    if len(sets) != len(pieces) or not pieces:
+        raise ValueError(f"{len(sets)} BSDF sets for {len(pieces)} yarn pieces")
+    sets = [list(s) if isinstance(s, (list, tuple)) else [s] for s in sets]
+    bsdfs = sets[0]
     C = 3 * len(bsdfs)
     if levels is not None and len(levels) != C:
         raise ValueError(f"{len(levels)} levels for {C} traced channels")
@@ -335,11 +372,11 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
     n_ti, n_to, n_po = g.n_theta_i, g.n_theta_o, g.n_phi_o
     step = g.step
     th_nodes = g.theta_i_nodes()
-    shape = make_curve_shape(piece.geometry, bsdfs[0], "yarn_piece")
-    scene = mi.load_dict({"type": "scene", "yarn": shape})
+    scenes = [mi.load_dict({"type": "scene", "yarn": make_curve_shape(pc.geometry, s[0], "yarn_piece")})
+              for pc, s in zip(pieces, sets)]
     ctx = mi.BSDFContext()
     rng = np.random.default_rng(settings.seed)
-    lz = piece.length
+    K = len(pieces)
     B = settings.batches
     per_batch = -(-settings.photons // B)
     n_bins = n_ti * n_to * n_po
@@ -348,101 +385,107 @@ def trace_far_field(piece: YarnPiece, bsdf: Any, settings: YarnBakeSettings,
     lost = np.zeros((B, n_ti, C))
     launched = np.zeros((B, n_ti))
     lanes = 1 << 18
-    total = B * n_ti * per_batch
+    # Batch b traces its photons through the pieces k = b (mod B), in equal shares (or through
+    # piece b mod K when there are fewer pieces than batches).
+    shares = [[k for k in range(K) if k % B == b] or [b % K] for b in range(B)]
+    per_piece = [-(-per_batch // len(s)) for s in shares]
+    total = sum(n_ti * per_piece[b] * len(shares[b]) for b in range(B))
     done = 0
     for b in range(B):
-        ti_all = np.repeat(np.arange(n_ti), per_batch)
-        for start in range(0, len(ti_all), lanes):
-            ti = ti_all[start:start + lanes]
-            n = len(ti)
-            th = th_nodes[ti]
-            ph = rng.uniform(0.0, _TWO_PI, n)
-            cp, sp = np.cos(ph), np.sin(ph)
-            # The beam covers the projected bounding width and enters at the cylinder.
-            u = rng.uniform(-1.0, 1.0, n)
-            h = np.sqrt(np.maximum(1.0 - u * u, 0.0))
-            o = np.stack([-u * sp + h * cp, u * cp + h * sp, rng.uniform(0.0, lz, n)], axis=1)
-            d = -np.stack([np.cos(th) * cp, np.cos(th) * sp, np.sin(th)], axis=1)
-            thr = np.ones((n, C))
-            hit_once = np.zeros(n, bool)
-            bounces = np.zeros(n, np.int64)
-            wraps = np.zeros(n, np.int64)
-            np.add.at(launched[b], ti, 1.0)
-            while n:
-                t_cyl = _cylinder_exit(o[:, 0], o[:, 1], d[:, 0], d[:, 1])
-                dz = d[:, 2]
-                safe = np.where(np.abs(dz) > 1e-12, dz, 1.0)
-                t_z = np.where(dz > 1e-12, (lz - o[:, 2]) / safe, np.where(dz < -1e-12, -o[:, 2] / safe, np.inf))
-                t_z = np.maximum(t_z, 0.0)
-                maxt = np.minimum(np.minimum(t_cyl, t_z), 1e30)
-                ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, k].astype(np.float32)) for k in range(3))),
-                               mi.Vector3f(*(mi.Float(d[:, k].astype(np.float32)) for k in range(3))))
-                ray.maxt = mi.Float(maxt.astype(np.float32))
-                si = scene.ray_intersect(ray)
-                dr.eval(si)
-                valid = np.array(si.is_valid(), bool)
-                # A photon leaving the bounding cylinder has left the yarn; one reaching an end
-                # of the piece re-enters at the other (a nearly axial one that keeps wrapping
-                # without meeting a fiber is taken as leaving).
-                miss = ~valid
-                esc = miss & ((t_cyl <= t_z) | (wraps >= _MAX_WRAPS))
-                wrap = miss & ~esc
-                rec = esc & hit_once
-                if np.any(rec):
-                    dd = d[rec]
-                    tho = np.arcsin(np.clip(dd[:, 2], -1.0, 1.0))
-                    dphi = np.mod(np.arctan2(dd[:, 1], dd[:, 0]) - ph[rec] + 0.5 * step, _TWO_PI)
-                    row = np.clip(np.floor((tho + 0.5 * math.pi) / step).astype(np.int64), 0, n_to - 1)
-                    col = np.floor(dphi / step).astype(np.int64) % n_po
-                    flat = ti[rec] * (n_to * n_po) + row * n_po + col
-                    for c in range(C):
-                        hist[b, c] += np.bincount(flat, weights=thr[rec, c], minlength=n_bins)
-                dead = np.zeros(n, bool)
-                if np.any(valid):
-                    u1 = mi.Float(rng.random(n).astype(np.float32))
-                    u2 = mi.Point2f(mi.Float(rng.random(n).astype(np.float32)),
-                                    mi.Float(rng.random(n).astype(np.float32)))
-                    bs, w = bsdfs[0].sample(ctx, si, u1, u2, mi.Bool(valid))
-                    # The other colours' weights of the same direction (same numbers, same
-                    # sampling density): one path carries every channel.
-                    ws = [w] + [other.sample(ctx, si, u1, u2, mi.Bool(valid))[1] for other in bsdfs[1:]]
-                    wo = si.to_world(bs.wo)
-                    dr.eval(bs, ws, wo)   # one kernel, not one per converted component
-                    null = np.array(bs.sampled_type, np.uint32) == int(mi.BSDFFlags.Null)
-                    ok = valid & (np.array(bs.pdf) > 0)
-                    wv = np.stack([np.array(wk[k], np.float64) for wk in ws for k in range(3)], axis=1)
-                    won = np.stack([np.array(wo[k], np.float64) for k in range(3)], axis=1)
-                    pn = np.stack([np.array(si.p[k], np.float64) for k in range(3)], axis=1)
-                    thr[ok] *= wv[ok]
-                    hit_once |= ok & ~null
-                    bounces += ok & ~null
-                    # A failed sample is an interaction that keeps nothing.
-                    dead = valid & ~ok
-                    hit_once |= dead
-                    newd = np.where(null[:, None], d, won)
-                    newd /= np.linalg.norm(newd, axis=1, keepdims=True)
-                    # Continue from the hit; Mitsuba's curves are not hit from inside, so a
-                    # ray entering a fiber's tube leaves it without meeting it again.
-                    o = np.where(ok[:, None], pn + 1e-5 * newd, o)
-                    d = np.where(ok[:, None], newd, d)
-                if np.any(wrap):
-                    ow = o[wrap] + t_z[wrap, None] * d[wrap]
-                    ow[:, 2] = np.where(d[wrap, 2] > 0, 0.0, lz)
-                    o[wrap] = ow
-                    wraps += wrap
-                over = bounces > settings.max_bounces
-                if np.any(over):
-                    np.add.at(lost[b], ti[over], thr[over])
-                black = np.max(thr, axis=1) <= 0
-                gone = esc | dead | over | black
-                np.add.at(scattered[b], ti[gone & hit_once], 1.0)
-                keep = ~gone
-                o, d, thr, hit_once = o[keep], d[keep], thr[keep], hit_once[keep]
-                bounces, wraps, ti, ph = bounces[keep], wraps[keep], ti[keep], ph[keep]
+        for k in shares[b]:
+            scene, bsdfs, lz = scenes[k], sets[k], pieces[k].length
+            ti_all = np.repeat(np.arange(n_ti), per_piece[b])
+            for start in range(0, len(ti_all), lanes):
+                ti = ti_all[start:start + lanes]
                 n = len(ti)
-            done += len(ti_all[start:start + lanes])
-            if progress is not None:
-                progress(done, total)
+                th = th_nodes[ti]
+                ph = rng.uniform(0.0, _TWO_PI, n)
+                cp, sp = np.cos(ph), np.sin(ph)
+                # The beam covers the projected bounding width and enters at the cylinder.
+                u = rng.uniform(-1.0, 1.0, n)
+                h = np.sqrt(np.maximum(1.0 - u * u, 0.0))
+                o = np.stack([-u * sp + h * cp, u * cp + h * sp, rng.uniform(0.0, lz, n)], axis=1)
+                d = -np.stack([np.cos(th) * cp, np.cos(th) * sp, np.sin(th)], axis=1)
+                thr = np.ones((n, C))
+                hit_once = np.zeros(n, bool)
+                bounces = np.zeros(n, np.int64)
+                wraps = np.zeros(n, np.int64)
+                np.add.at(launched[b], ti, 1.0)
+                while n:
+                    t_cyl = _cylinder_exit(o[:, 0], o[:, 1], d[:, 0], d[:, 1])
+                    dz = d[:, 2]
+                    safe = np.where(np.abs(dz) > 1e-12, dz, 1.0)
+                    t_z = np.where(dz > 1e-12, (lz - o[:, 2]) / safe, np.where(dz < -1e-12, -o[:, 2] / safe, np.inf))
+                    t_z = np.maximum(t_z, 0.0)
+                    maxt = np.minimum(np.minimum(t_cyl, t_z), 1e30)
+                    ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, k].astype(np.float32)) for k in range(3))),
+                                   mi.Vector3f(*(mi.Float(d[:, k].astype(np.float32)) for k in range(3))))
+                    ray.maxt = mi.Float(maxt.astype(np.float32))
+                    si = scene.ray_intersect(ray)
+                    dr.eval(si)
+                    valid = np.array(si.is_valid(), bool)
+                    # A photon leaving the bounding cylinder has left the yarn; one reaching an end
+                    # of the piece re-enters at the other (a nearly axial one that keeps wrapping
+                    # without meeting a fiber is taken as leaving).
+                    miss = ~valid
+                    esc = miss & ((t_cyl <= t_z) | (wraps >= _MAX_WRAPS))
+                    wrap = miss & ~esc
+                    rec = esc & hit_once
+                    if np.any(rec):
+                        dd = d[rec]
+                        tho = np.arcsin(np.clip(dd[:, 2], -1.0, 1.0))
+                        dphi = np.mod(np.arctan2(dd[:, 1], dd[:, 0]) - ph[rec] + 0.5 * step, _TWO_PI)
+                        row = np.clip(np.floor((tho + 0.5 * math.pi) / step).astype(np.int64), 0, n_to - 1)
+                        col = np.floor(dphi / step).astype(np.int64) % n_po
+                        flat = ti[rec] * (n_to * n_po) + row * n_po + col
+                        for c in range(C):
+                            hist[b, c] += np.bincount(flat, weights=thr[rec, c], minlength=n_bins)
+                    dead = np.zeros(n, bool)
+                    if np.any(valid):
+                        u1 = mi.Float(rng.random(n).astype(np.float32))
+                        u2 = mi.Point2f(mi.Float(rng.random(n).astype(np.float32)),
+                                        mi.Float(rng.random(n).astype(np.float32)))
+                        bs, w = bsdfs[0].sample(ctx, si, u1, u2, mi.Bool(valid))
+                        # The other colours' weights of the same direction (same numbers, same
+                        # sampling density): one path carries every channel.
+                        ws = [w] + [other.sample(ctx, si, u1, u2, mi.Bool(valid))[1] for other in bsdfs[1:]]
+                        wo = si.to_world(bs.wo)
+                        dr.eval(bs, ws, wo)   # one kernel, not one per converted component
+                        null = np.array(bs.sampled_type, np.uint32) == int(mi.BSDFFlags.Null)
+                        ok = valid & (np.array(bs.pdf) > 0)
+                        wv = np.stack([np.array(wk[k], np.float64) for wk in ws for k in range(3)], axis=1)
+                        won = np.stack([np.array(wo[k], np.float64) for k in range(3)], axis=1)
+                        pn = np.stack([np.array(si.p[k], np.float64) for k in range(3)], axis=1)
+                        thr[ok] *= wv[ok]
+                        hit_once |= ok & ~null
+                        bounces += ok & ~null
+                        # A failed sample is an interaction that keeps nothing.
+                        dead = valid & ~ok
+                        hit_once |= dead
+                        newd = np.where(null[:, None], d, won)
+                        newd /= np.linalg.norm(newd, axis=1, keepdims=True)
+                        # Continue from the hit; Mitsuba's curves are not hit from inside, so a
+                        # ray entering a fiber's tube leaves it without meeting it again.
+                        o = np.where(ok[:, None], pn + 1e-5 * newd, o)
+                        d = np.where(ok[:, None], newd, d)
+                    if np.any(wrap):
+                        ow = o[wrap] + t_z[wrap, None] * d[wrap]
+                        ow[:, 2] = np.where(d[wrap, 2] > 0, 0.0, lz)
+                        o[wrap] = ow
+                        wraps += wrap
+                    over = bounces > settings.max_bounces
+                    if np.any(over):
+                        np.add.at(lost[b], ti[over], thr[over])
+                    black = np.max(thr, axis=1) <= 0
+                    gone = esc | dead | over | black
+                    np.add.at(scattered[b], ti[gone & hit_once], 1.0)
+                    keep = ~gone
+                    o, d, thr, hit_once = o[keep], d[keep], thr[keep], hit_once[keep]
+                    bounces, wraps, ti, ph = bounces[keep], wraps[keep], ti[keep], ph[keep]
+                    n = len(ti)
+                done += len(ti_all[start:start + lanes])
+                if progress is not None:
+                    progress(done, total)
     return _assemble(g, hist, scattered, launched, lost, settings, header or {}, levels)
 
 
@@ -549,28 +592,32 @@ def bake_yarn_far_field(params: Any, fiber_diameter: float, slots: Sequence[Any]
 
     mi = mitsuba()
     st = settings or YarnBakeSettings()
-    # The piece's own fibers (the settings' seed), whatever the yarn's seed: a statistic of
+    # The pieces' own fibers (the settings' seeds), whatever the yarn's seed: a statistic of
     # the structure, shared by every yarn of it (far_field_inputs).
-    piece = yarn_piece(replace(params, seed=st.seed), fiber_diameter, st)
-    geom = piece.geometry
+    pieces = far_field_pieces(params, fiber_diameter, st)
     rng = np.random.default_rng([st.seed, 0x7A22])
-    nc = geom.curve_count
     tables = _tables(slots)
-    variant = rng.integers(0, len(tables), nc)
-    psi = rng.uniform(0.0, _TWO_PI, nc)
     # One slot per (level triple, table); BSDF j uses the slots of triple j.
     lv = st.levels
     triples = [tuple(lv[i:i + 3]) for i in range(0, len(lv), 3)]
     bank = FiberBank.build([FiberSlot(t.table, tr) for tr in triples for t in tables])
-    seg_var, seg_psi, ref = variant[geom.segment_curve], psi[geom.segment_curve], reference_normals(geom)
-    bsdfs = [fiber_bsdf(mi, bank, j * len(tables) + seg_var, seg_psi, ref) for j in range(len(triples))]
+    sets = []
+    for piece in pieces:
+        geom = piece.geometry
+        nc = geom.curve_count
+        variant = rng.integers(0, len(tables), nc)
+        psi = rng.uniform(0.0, _TWO_PI, nc)
+        seg_var, seg_psi, ref = variant[geom.segment_curve], psi[geom.segment_curve], reference_normals(geom)
+        sets.append([fiber_bsdf(mi, bank, j * len(tables) + seg_var, seg_psi, ref) for j in range(len(triples))])
     t0 = _time.perf_counter()
     inputs = far_field_inputs(params, fiber_diameter, slots, st)
-    ff = trace_far_field(piece, bsdfs, st, progress, levels=lv,
+    ff = trace_far_field(pieces, sets, st, progress, levels=lv,
                          header={"geometry_key": _key(inputs), "inputs": inputs,
-                                 "piece": {"fibers": piece.fibers, "segments": geom.segment_count,
-                                           "length_over_bound_radius": piece.length,
-                                           "bound_radius": piece.bound_radius}})
+                                 "piece": {"fibers": pieces[0].fibers,
+                                           "segments": sum(pc.geometry.segment_count for pc in pieces),
+                                           "length_over_bound_radius": pieces[0].length,
+                                           "bound_radius": pieces[0].bound_radius,
+                                           "realizations": len(pieces)}})
     ff.header["seconds"] = _time.perf_counter() - t0
     return ff
 

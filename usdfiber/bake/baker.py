@@ -34,7 +34,10 @@ photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.samplin
 "reciprocity" averages every entry of a box-filtered table with its reciprocal partner
 (:mod:`usdfiber.bake.reciprocity`) when the table is assembled (its chunks hold the plain
 histograms); "split" splits every hit of the outer surface into ``split_walks`` microsurface
-walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits). All
+walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits);
+"expected" histograms, in the tracer's kernel, the expected exit of every outer-surface event
+where leaving is for good over ``expected_normals`` visible normals, at every absorption
+level (:class:`usdfiber.bake.tracer.ExitHistogram`). All
 give every direction its own random streams (:func:`stream_seed`).
 
 Grid: :meth:`BakeSettings.grid_for` (the settings' bin size and incoming node spacing, or with
@@ -170,6 +173,8 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
     node = {id(a): d for a, d in zip(accs, dirs)}
     sampler = "sobol" if "stratified" in st.estimator else "independent"
     split = int(st.split_walks) if "split" in st.estimator else 0
+    expected = int(st.expected_normals) if "expected" in st.estimator else 0
+    hist = tracer.ExitHistogram.for_grid(ctx.grid, ctx.levels_um) if expected else None
     while True:
         todo = [a for a in accs if a.queue]
         if not todo:
@@ -183,7 +188,8 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
             seeds = [batch_seed(st.seed, b) for _, b in batch]
         res = tracer.trace_many(ctx.fs, subs, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
                                 max_bounces=int(st.max_bounces), seed=seeds,
-                                cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split)
+                                cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split,
+                                expected=expected, histogram=hist)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:
@@ -210,6 +216,9 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
     if "split" in st.estimator and cut is not None:
         raise BakeError("estimator 'split' needs a fiber without cuticle scales (the test that light "
                         "leaving through the scales never meets them again is not built)")
+    if "expected" in st.estimator and cut is not None:
+        raise BakeError("estimator 'expected' needs a fiber without cuticle scales (where light leaving "
+                        "through the scales is for good is not known)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # mesh remarks on cuticle shapes
         fs = tracer.prepare(profile, cut)

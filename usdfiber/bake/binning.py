@@ -9,7 +9,8 @@ and density / albedo is p(omega_o | omega_i).
 
 Each exit is weighted by exp(-sigma_a L) with its own path length L in the material (times its
 weight at zero absorption, ``TraceResult.weight``, where an estimator leaves several exits
-of fractional weight per photon): this is
+of fractional weight per photon, and plus the exits the expected-value estimator binned in the
+tracer, ``TraceResult.histogram``, at its own absorption levels): this is
 the direct answer that the baked tables' recolouring (:mod:`usdfiber.bake.absorption`, which
 keeps a few absorption levels per bin and interpolates between them) is checked against.
 """
@@ -46,6 +47,14 @@ def bin_direct(result: Any, sigma_a: float | np.ndarray = 0.0, grid: Grid | None
     nb = grid.n_theta_o * grid.n_phi_o
     norm = 1.0 / (max(int(result.n_hit), 1) * grid.bin_solid_angles().ravel())
     s = np.atleast_1d(np.asarray(sigma_a, dtype=np.float64))
-    out = np.stack([np.bincount(idx, weights=w * np.exp(-c * L), minlength=nb) * norm for c in s], axis=-1)
+    sums = [np.bincount(idx, weights=w * np.exp(-c * L), minlength=nb) for c in s]
+    hist = getattr(result, "histogram", None)
+    if hist is not None:
+        hb = result.histogram_bins
+        if (hb.n_theta, hb.n_phi) != (grid.n_theta_o, grid.n_phi_o):
+            raise ValueError(f"the result's expected-value histogram has {hb.n_theta}x{hb.n_phi} bins, "
+                             f"the grid {grid.n_theta_o}x{grid.n_phi_o}")
+        sums = [x + hist[result.histogram_level(c), 0] for x, c in zip(sums, s)]
+    out = np.stack([x * norm for x in sums], axis=-1)
     out = out.reshape(grid.n_theta_o, grid.n_phi_o, len(s))
     return out[..., 0] if np.ndim(sigma_a) == 0 else out

@@ -6,16 +6,20 @@ the table's grid (:func:`usdfiber.bake.baker.table_directions`), the photons eac
 needs, up to ``max_photons``), the tracer launches (one per batch of a group of
 :func:`~usdfiber.bake.settings.directions_per_group` directions). What it costs per photon
 depends on the fiber and on this machine, so a quick **probe** measures it
-(:func:`probe`) with the baker's own code: one tracer launch as the bake makes them (a full
-group of directions spread over the grid, at the bake's photons per batch; a bake is
-``launches`` of them, ``t = launches * launch_seconds``), and a few directions at the bake's
-photons per direction, assembled into a small table and written as a table is, which gives
-the assembly time and the compressed bytes per direction. The probe also gives the error
-constant ``c`` of ``rel L2 = c / sqrt(N)`` that target-error mode needs.
+(:func:`probe`) with the baker's own code. A launch of N photons takes ``a + N / rate``
+(:func:`launch_model`; ``a`` is the cost of its phases, which grows only slowly with N),
+so two launch sizes give ``a`` and the rate: a few directions
+at the bake's photons per direction, and a launch shaped like the bake's but smaller
+(:func:`launch_shape`: directions spread over the grid at the bake's photons per batch,
+about :data:`PROBE_LAUNCH_PHOTONS` in all; the bake's launches hold up to 2M). The few
+directions are also assembled into a small table and written as a table is, which gives the
+assembly time and the compressed bytes per direction, and the error constant ``c`` of
+``rel L2 = c / sqrt(N)`` that target-error mode needs.
 
-A probe takes a few seconds at most (its photons per direction are the bake's, capped at
-:data:`PROBE_PHOTONS`) and is kept per fiber (the geometry inputs of cross-section variant
-0, which stands for the others), grid, photons and machine under the cache root
+A probe traces about 1.3M photons (its directions' photons per direction are the bake's,
+capped at :data:`PROBE_PHOTONS`; the timed launch holds :data:`PROBE_LAUNCH_PHOTONS`, each
+size traced twice) and is kept per fiber (the geometry inputs of cross-section variant 0,
+which stands for the others), grid, photons and machine under the cache root
 (``probes/<key>.json``); a damaged or foreign file is probed again.
 
 Accuracy: the direction count, photons and launches of an estimate are exact for a bake of
@@ -43,26 +47,36 @@ import numpy as np
 
 from usdfiber.bake.settings import BakeSettings, directions_per_group
 
-__all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "PROBE_PHOTONS", "BakeEstimate", "Probe", "cheaper_hint",
-           "estimate", "estimate_request", "format_seconds", "probe", "total"]
+__all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "PROBE_LAUNCH_PHOTONS", "PROBE_PHOTONS", "BakeEstimate", "Probe",
+           "cheaper_hint", "estimate", "estimate_request", "format_seconds", "launch_model", "launch_shape", "probe",
+           "total"]
 
 #: Incoming directions a probe traces (spread over the table's grid).
 PROBE_DIRECTIONS = 4
 #: Most photons per direction a probe traces (the bake's own count when fewer).
 PROBE_PHOTONS = 1 << 16
+#: Photons of the probe's larger timed launch (fewer when the bake's own launches are
+#: smaller): with the probe directions' launch, enough for the line through the two to
+#: extrapolate to the bake's launches (``bench/REPORT.md``, "Cost estimates").
+PROBE_LAUNCH_PHOTONS = 1 << 19
+#: Photons of the launch that compiles the tracer's kernels before the timed ones.
+_COMPILE_PHOTONS = 256
 #: A bake estimated to take longer than this is announced with a warning before it starts.
 LONG_BAKE_SECONDS = 600.0
 #: Version of the probe's measurements (part of its key).
-PROBE_VERSION = 3
+PROBE_VERSION = 4
 
 
 @dataclass(frozen=True)
 class Probe:
     """What a probe measured on this machine for one fiber (see the module docstring).
 
-    ``launch_seconds``: time of one tracer launch of ``launch_directions`` directions (a
-    group, :func:`~usdfiber.bake.settings.directions_per_group`) at the bake's photons per
-    batch, binning included; ``photons_per_second``: what that makes; ``assembly_seconds``: assembling and writing, per direction;
+    A tracer launch of N photons takes ``launch_fixed_seconds + N / photons_per_second``
+    (:func:`launch_model`, the rate with the binning; the larger timed launch held
+    ``timed_photons``); ``launch_seconds``: what that makes one launch of
+    ``launch_directions`` directions (a group,
+    :func:`~usdfiber.bake.settings.directions_per_group`) at the bake's photons per batch;
+    ``assembly_seconds``: assembling and writing, per direction;
     ``direction_bytes``: compressed bytes of a direction's arrays in the table file and
     ``fixed_bytes`` those of the rest (header, levels, width), both at ``photons`` per
     direction; ``error_constant``: ``c`` of ``rel L2 = c / sqrt(N)`` (rms over the probe
@@ -80,6 +94,8 @@ class Probe:
     error_constant: float
     seconds: float
     machine: dict[str, Any]
+    timed_photons: int
+    launch_fixed_seconds: float
 
 
 @dataclass(frozen=True)
@@ -138,6 +154,36 @@ def _probe_key(request: Any, settings: BakeSettings, photons: int) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
+def launch_shape(settings: BakeSettings, n_dirs: int, photons: int = PROBE_LAUNCH_PHOTONS) -> tuple[int, int]:
+    """``(directions, photons per direction)`` of the probe's timed launch for a bake of
+    ``n_dirs`` directions: the bake's photons per batch (at most ``photons``) for as many
+    directions as make ``photons`` in all, at most a group
+    (:func:`~usdfiber.bake.settings.directions_per_group`) and the table's directions."""
+    per = min(int(settings.photons_per_batch), max(1, int(photons)))
+    group = max(1, min(directions_per_group(settings), int(n_dirs)))
+    return max(1, min(group, int(photons) // per)), per
+
+
+def launch_model(n1: int, t1: float, n2: int, t2: float) -> tuple[float, float]:
+    """``(a, rate)`` of ``t(N) = a + N / rate``, the time of a tracer launch of N photons,
+    from two launches (``n1`` photons in ``t1`` seconds, ``n2`` in ``t2``).
+
+    A launch runs in phases until its slowest photon is done, each phase recorded and started
+    anew: ``a``, their cost, grows with the longest path among the launch's photons, slowly
+    (polyester: 72 phases at 65k photons, 100 at 250k, 107 at 2M), so the line through two
+    launches of 1e5-5e5 photons extrapolates to a bake's launches of up to 2M
+    (``bench/REPORT.md``, "Cost estimates"). Noise is bounded: the marginal rate is taken between the larger
+    launch's mean rate (``a = 0``; also when the larger launch was not the slower) and 4
+    times it."""
+    if n1 > n2:
+        n1, t1, n2, t2 = n2, t2, n1, t1
+    mean_rate = n2 / max(t2, 1e-9)
+    if n2 <= n1 or t2 <= t1:
+        return 0.0, mean_rate
+    rate = min(max((n2 - n1) / (t2 - t1), mean_rate), 4.0 * mean_rate)
+    return max(0.0, t2 - n2 / rate), rate
+
+
 def _probe_photons(settings: BakeSettings) -> int:
     """Photons per probe direction: the bake's, at most PROBE_PHOTONS, whole batches."""
     n = min(int(settings.photons), PROBE_PHOTONS)
@@ -190,20 +236,33 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
     dirs_all = table_directions(request, settings)
     D = min(PROBE_DIRECTIONS, len(dirs_all))
     dirs = [dirs_all[min(len(dirs_all) - 1, int((j + 0.5) * len(dirs_all) / D))] for j in range(D)]
-    # Time: one launch as the bake makes them, a full group of directions (spread over the
-    # grid) at the bake's photons per batch, traced twice (two batches) after a small run
-    # that compiles the kernels.
+    # Time: a launch of N photons takes t(N) = a + N / rate (launch_model). Two sizes give a
+    # and the rate: the probe directions at the bake's photons per direction (at most
+    # PROBE_PHOTONS; they also give the size and the error), in two batches, and a launch
+    # shaped like the bake's but smaller (launch_shape); each size is two launches, after a
+    # small run that compiles the kernels. The line is fitted to the process's CPU time,
+    # which other work on the machine barely changes (a difference of wall times would carry
+    # its load's swings), and scaled to the larger launch's wall time.
     nb = settings.photons_per_batch
     group = min(directions_per_group(settings), len(dirs_all))
-    spread = [dirs_all[min(len(dirs_all) - 1, int((j + 0.5) * len(dirs_all) / group))] for j in range(group)]
-    launch_ctx = replace(ctx_big, settings=replace(settings, photons=2 * nb, batches=2, target_error=None))
-    trace_directions(replace(ctx_big, settings=replace(settings, photons=2 * min(nb, 256), batches=2,
-                                                       target_error=None)), spread[:1])
-    t0 = time.perf_counter()
-    trace_directions(launch_ctx, spread)
-    launch = (time.perf_counter() - t0) / 2
-    # Size and error: a few directions at the bake's photons (at most PROBE_PHOTONS).
-    data = trace_directions(ctx_big, dirs)
+    k, m = launch_shape(settings, len(dirs_all))
+    spread = [dirs_all[min(len(dirs_all) - 1, int((j + 0.5) * len(dirs_all) / k))] for j in range(k)]
+
+    def two_batches(photons: int) -> Any:
+        return replace(ctx_big, settings=replace(settings, photons=2 * photons, batches=2, target_error=None))
+
+    def timed(ctx: Any, directions: list[tuple[int, int]]) -> tuple[list[dict[str, Any]], float, float]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = trace_directions(ctx, directions)
+        return out, (time.perf_counter() - t0) / 2, (time.process_time() - c0) / 2
+
+    timed(two_batches(min(m, _COMPILE_PHOTONS)), spread[:1])       # compiles the kernels
+    size_ctx = two_batches((n + 1) // 2)
+    data, _, cpu_size = timed(size_ctx, dirs)
+    _, wall_launch, cpu_launch = timed(two_batches(m), spread)
+    a_cpu, rate_cpu = launch_model(D * size_ctx.settings.photons_per_batch, cpu_size, k * m, cpu_launch)
+    wall_per_cpu = wall_launch / max(cpu_launch, 1e-9)
+    fixed_launch, rate = a_cpu * wall_per_cpu, rate_cpu / wall_per_cpu
     # The probe directions as a small table, assembled and written as the bake does: on the
     # grid of a round fiber (one phi_i, the same outgoing bins), its theta_i rows taking the
     # probe directions in turn.
@@ -223,8 +282,13 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
                          "machine": _machine()},
                 "error_estimate": {"metric": "", "rms": 0.0, "max": 0.0, "median": 0.0, "target": None},
                 "levels_optical_depth": list(settings.levels), "leaks": 0, "cache_key": "0" * 64})
-    small_grid = Grid(ctx_big.grid.resolution_deg, True, True)   # the bins this fiber gets
-    rows = small_grid.n_theta_i
+    # The bins this fiber gets, and as few theta_i rows (at least the probe directions) as an
+    # incoming spacing that divides 90 deg allows: assembling costs per row (what is fixed
+    # per table is then counted a few times over, a small part of a bake).
+    res = float(ctx_big.grid.resolution_deg)
+    n_bins = int(round(90.0 / res))
+    rows = min((r for r in range(D, n_bins + 1) if n_bins % r == 0), default=n_bins)
+    small_grid = Grid(res, True, True, incoming_deg=res * (n_bins // rows))
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         table = assemble(small_grid, ctx_big.levels_um, (rows, 1), lambda ti, pi: data[ti % D], ctx_big.width_env,
@@ -236,14 +300,16 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
     assembly = (time.perf_counter() - t0) / rows
     # Bytes per direction: the distinct probe rows of each per-direction array, deflated as
     # one stream as the file's members are (the repeated rows would deflate to nothing).
-    per_dir = sum(len(zlib.compress(np.ascontiguousarray(table.arrays[name][:D]).tobytes(), _DEFLATE_LEVEL))
-                  for name in _PER_DIRECTION) / D
+    distinct = min(D, rows)      # a grid of fewer rows than probe directions holds fewer
+    per_dir = sum(len(zlib.compress(np.ascontiguousarray(table.arrays[name][:distinct]).tobytes(), _DEFLATE_LEVEL))
+                  for name in _PER_DIRECTION) / distinct
     err = np.array([float(d["rel_error"]) for d in data])
     c = float(np.sqrt(np.mean(err[np.isfinite(err)] ** 2) * n)) if np.isfinite(err).any() else math.inf
-    return Probe(key=key, photons=n, directions=D, launch_seconds=float(launch), launch_directions=group,
-                 photons_per_second=float(group * nb / max(launch, 1e-9)),
-                 assembly_seconds=float(assembly), direction_bytes=float(per_dir), fixed_bytes=float(fixed),
-                 error_constant=c, seconds=time.perf_counter() - t_start, machine=_machine())
+    return Probe(key=key, photons=n, directions=D, launch_seconds=float(fixed_launch + group * nb / rate),
+                 launch_directions=group, photons_per_second=float(rate), assembly_seconds=float(assembly),
+                 direction_bytes=float(per_dir), fixed_bytes=float(fixed), error_constant=c,
+                 seconds=time.perf_counter() - t_start, machine=_machine(), timed_photons=int(k * m),
+                 launch_fixed_seconds=float(fixed_launch))
 
 
 #: Arrays of a table file with one entry per incoming direction (they grow with the grid).
@@ -285,8 +351,8 @@ def estimate(request: Any, settings: BakeSettings, measured: Probe, key: str = "
     full, rest = divmod(n_dirs, group)
     launches = (full + (1 if rest else 0)) * batches
     photons = n_dirs * per_dir
-    # Each launch as long as the probe's of a full group; the last group's in proportion.
-    seconds = (batches * measured.launch_seconds * (full + rest / max(1, measured.launch_directions))
+    # Every launch costs its fixed time, every photon the probe's rate (module docstring).
+    seconds = (launches * measured.launch_fixed_seconds + photons / measured.photons_per_second
                + n_dirs * measured.assembly_seconds)
     disk = measured.fixed_bytes + n_dirs * measured.direction_bytes
     return BakeEstimate(label=request.label, key=key, directions=n_dirs, photons_per_direction=per_dir,

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FiberMesh", "build_fiber_mesh", "is_convex_loop", "profile_bounds"]
+__all__ = ["FiberMesh", "build_fiber_mesh", "hull_edges", "is_convex_loop", "profile_bounds"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,10 @@ class FiberMesh:
     #: The outer loop is convex and there are no scales: light leaving through the outer
     #: surface cannot meet the fiber again.
     outer_convex: bool = False
+    #: (F,) bool: an outer face whose profile edge is an edge of the outer loop's convex hull
+    #: (extruded fibers; all outer faces of a convex loop). The whole fiber lies on the inner
+    #: side of that edge's line, so light leaving such a face outwards cannot meet it again.
+    outer_hull: np.ndarray | None = None
 
     def to_mitsuba(self, mi: Any) -> Any:
         """Build the ``mi.Mesh`` (positions, faces, vertex normals) of this segment."""
@@ -108,6 +112,21 @@ def is_convex_loop(loop: np.ndarray) -> bool:
     return bool(np.all(cross >= -1e-12 * scale))
 
 
+def hull_edges(loop: np.ndarray) -> np.ndarray:
+    """(n,) bool: edge ``i`` (vertex i to i + 1) of the closed counter-clockwise polygon
+    ``loop`` is an edge of its convex hull: no vertex lies outside the edge's line."""
+    lp = np.asarray(loop, dtype=np.float64)
+    e = np.roll(lp, -1, axis=0) - lp
+    scale = float(np.max(np.abs(lp))) if len(lp) else 1.0
+    out = np.empty(len(lp), dtype=bool)
+    for a in range(0, len(lp), 256):          # (256, n) blocks: bounded memory
+        b = min(a + 256, len(lp))
+        rel = lp[None, :, :] - lp[a:b, None, :]
+        cross = e[a:b, None, 0] * rel[..., 1] - e[a:b, None, 1] * rel[..., 0]
+        out[a:b] = np.all(cross >= -1e-9 * scale * np.linalg.norm(e[a:b], axis=1)[:, None], axis=1)
+    return out
+
+
 def build_fiber_mesh(
     profile: Any,
     cuticle: tuple[float, float, float] | None = None,
@@ -135,11 +154,13 @@ def build_fiber_mesh(
     norms: list[np.ndarray] = []
     faces: list[np.ndarray] = []
     outer_flags: list[np.ndarray] = []    # per block of faces: on the outer surface?
+    hull_flags: list[np.ndarray] = []     # per block of faces: on an edge of the outline's hull?
     count = 0
 
-    def add_faces(tri: np.ndarray, outer: bool) -> None:
+    def add_faces(tri: np.ndarray, outer: bool, hull: np.ndarray | None = None) -> None:
         faces.append(tri)
         outer_flags.append(np.full(len(tri), outer))
+        hull_flags.append(np.zeros(len(tri), bool) if hull is None else np.asarray(hull, bool))
 
     def add_ring(xy: np.ndarray, z: float, nrm3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Add one ring of vertices at height z; returns (start, end) vertex index per edge."""
@@ -171,7 +192,8 @@ def build_fiber_mesh(
             n3 = np.column_stack([sn, np.zeros(len(sn))])
             a = add_ring(lp, -0.5 * seg, n3)
             b = add_ring(lp, 0.5 * seg, n3)
-            add_faces(_quads(a, b), j == 0)
+            # _quads gives two triangles per edge, in two blocks of one per edge.
+            add_faces(_quads(a, b), j == 0, np.tile(hull_edges(lp), 2) if j == 0 else None)
         z_invariant, z_period, bound = True, seg, radius
     else:
         tilt_deg, height, spacing = (float(c) for c in cuticle)
@@ -220,11 +242,12 @@ def build_fiber_mesh(
     N /= np.linalg.norm(N, axis=1, keepdims=True)
     F = np.concatenate(faces).astype(np.uint32)
     outer_faces = np.concatenate(outer_flags)
+    outer_hull = np.concatenate(hull_flags)
     p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     fn = np.cross(p1 - p0, p2 - p0)
     area2 = np.linalg.norm(fn, axis=1)
     keep = area2 > 1e-12 * max(radius, 1.0) ** 2   # drop degenerate triangles
-    F, fn, area2, outer_faces = F[keep], fn[keep], area2[keep], outer_faces[keep]
+    F, fn, area2, outer_faces, outer_hull = F[keep], fn[keep], area2[keep], outer_faces[keep], outer_hull[keep]
     fn /= area2[:, None]
     # The winding is chosen so that geometric normals leave the material; check it against the
     # smooth normals, which is what makes the tracer's inside/outside test trustworthy.
@@ -244,4 +267,5 @@ def build_fiber_mesh(
         bound_radius=bound * (1.0 + 1e-6) + 1e-6,
         outer_faces=outer_faces,
         outer_convex=cuticle is None and is_convex_loop(loops[0]),
+        outer_hull=outer_hull,
     )

@@ -7,15 +7,16 @@ version and the built-in profiles' resolution) enter the cache key through
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from usdfiber.bake import band_limit
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
-           "RENDER_BAKE_SETTINGS", "BakeError", "BakeSettings", "directions_per_group"]
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_HIST_BYTES", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+           "RENDER_BAKE_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
+           "render_bake_settings"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
 BAKER_VERSION = 1
@@ -30,10 +31,20 @@ BUILTIN_PROFILE_VERTICES = 512
 #: (:mod:`usdfiber.bake.reciprocity`, box-filtered tables only); "split", every hit of the
 #: outer surface split into ``BakeSettings.split_walks`` microsurface walks, those that leave
 #: the fiber deposited with weight 1/K each (:func:`usdfiber.bake.tracer.trace`, fibers
-#: without cuticle scales). All trace every direction with its own random streams.
-ESTIMATORS = ("reciprocity", "split", "stratified")
+#: without cuticle scales); "expected", at every event of the outer surface where leaving is
+#: for good, the expected exit over ``BakeSettings.expected_normals`` visible normals is
+#: histogrammed and the walk goes on (same function, fibers without cuticle scales; not with
+#: "split"). All trace every direction with its own random streams.
+ESTIMATORS = ("expected", "reciprocity", "split", "stratified")
 #: Most walks per split (``BakeSettings.split_walks``).
 MAX_SPLIT_WALKS = 64
+#: Most normals per event of the "expected" estimator (``BakeSettings.expected_normals``).
+MAX_EXPECTED_NORMALS = 64
+#: The "expected" estimator's memory in the tracer: its in-kernel histograms of one launch at
+#: most (launches are cut at direction boundaries to stay below), and its queue of events
+#: (2^22 events of 72 bytes).
+EXPECTED_HIST_BYTES = 256 << 20
+EXPECTED_QUEUE_BYTES = (1 << 22) * 72
 
 
 class BakeError(ValueError):
@@ -81,6 +92,9 @@ class BakeSettings:
     auto_resolution: bool = False
     #: Walks per outer-surface hit of the "split" estimator (part of the cache key only with it).
     split_walks: int = 8
+    #: Visible normals per outer-surface event of the "expected" estimator (in the cache key
+    #: only with it; bench/REPORT.md, section 7, chose the default).
+    expected_normals: int = 8
 
     def __post_init__(self) -> None:
         # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
@@ -142,6 +156,14 @@ class BakeSettings:
         if isinstance(sw, bool) or not isinstance(sw, (int, float)) or int(sw) != sw or not 1 <= int(sw) <= MAX_SPLIT_WALKS:
             raise BakeError(f"split_walks must be an integer from 1 to {MAX_SPLIT_WALKS}, got {sw!r}")
         object.__setattr__(self, "split_walks", int(sw))
+        en = self.expected_normals
+        if (isinstance(en, bool) or not isinstance(en, (int, float)) or int(en) != en
+                or not 1 <= int(en) <= MAX_EXPECTED_NORMALS):
+            raise BakeError(f"expected_normals must be an integer from 1 to {MAX_EXPECTED_NORMALS}, got {en!r}")
+        object.__setattr__(self, "expected_normals", int(en))
+        if "expected" in est and "split" in est:
+            raise BakeError("estimators 'expected' and 'split' cannot be combined (both replace the exits "
+                            "through the outer surface)")
         if self.incoming == "box" and (auto or self.incoming_deg is not None):
             # A box node spreads its light over one outgoing bin's solid angle, not a coarser cell.
             raise BakeError("incoming='box' needs incoming nodes as far apart as the bins (no "
@@ -167,7 +189,9 @@ class BakeSettings:
         per-bin arrays ``p`` and ``lbar`` with a full theta_o band (:mod:`usdfiber.bake.storage`),
         the float64 sums of a group of directions in flight (:mod:`usdfiber.bake.statistics`)
         and the tracer's photons (about 2^21 at 64 bytes); with the "reciprocity" estimator,
-        also every direction's histograms in float32, twice (:mod:`usdfiber.bake.reciprocity`)."""
+        also every direction's histograms in float32, twice (:mod:`usdfiber.bake.reciprocity`);
+        with "expected", the tracer's histograms and event queue (:data:`EXPECTED_HIST_BYTES`,
+        :data:`EXPECTED_QUEUE_BYTES`)."""
         # (with auto_resolution, resolution_deg is the finest grid the rule chooses)
         g = Grid(self.resolution_deg, True, False, self.incoming_deg)
         K = len(self.levels)
@@ -175,8 +199,9 @@ class BakeSettings:
         item = 2 if self.storage == "float16" else 4
         group = directions_per_group(self)
         symmetrize = 4 * g.n_theta_i * g.n_phi_i * per_direction * 4 if "reciprocity" in self.estimator else 0
+        expected = EXPECTED_HIST_BYTES + EXPECTED_QUEUE_BYTES if "expected" in self.estimator else 0
         return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * per_direction * 16
-                + (1 << 21) * 64 + symmetrize)
+                + (1 << 21) * 64 + symmetrize + expected)
 
     def result_inputs(self) -> dict[str, Any]:
         """Everything that changes a baked table (for cache keys and headers)."""
@@ -188,6 +213,8 @@ class BakeSettings:
             d.pop("estimator")  # the plain estimator: keys of tables baked before it existed
         if "split" not in self.estimator:
             d.pop("split_walks")    # only used by the split estimator
+        if "expected" not in self.estimator:
+            d.pop("expected_normals")    # only used by the expected-value estimator
         if self.incoming_deg is None:
             d.pop("incoming_deg")  # the paper's grid: keys of tables baked before it existed
         if self.auto_resolution:
@@ -213,8 +240,38 @@ def directions_per_group(settings: BakeSettings) -> int:
     return max(1, min(GROUP_DIRECTIONS, GROUP_PHOTONS // settings.photons_per_batch))
 
 
-#: Bake settings for tables baked on demand by a renderer bridge or a material writer: a 6
-#: degree grid (renderers interpolate between bins) and 100k photons per incoming direction
-#: (2.5-7 % relative L2 error per direction, rms over the table, for the presets:
-#: bench/REPORT.md, "grouping"). `usdfiber bake` makes the paper's 2 degree tables.
+#: Bake settings for tables baked on demand by a renderer bridge or a material writer, for
+#: fibers whose cross section is not round: a 6 degree grid (renderers interpolate between
+#: bins) and 100k photons per incoming direction (2.5-7 % relative L2 error per direction, rms
+#: over the table, for the presets: bench/REPORT.md, "grouping"). Round fibers get finer
+#: tables: :func:`render_bake_settings`. `usdfiber bake` makes the paper's 2 degree tables.
 RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
+#: Bins and incoming nodes of the tables a renderer bakes on demand for round fibers.
+ROUND_RENDER_RESOLUTION_DEG = 2.0
+
+
+def render_bake_settings(round_profile: bool, resolution_deg: float | None = None,
+                         photons: int | None = None) -> BakeSettings:
+    """The settings of a table that a renderer or material writer bakes on demand for a fiber
+    whose cross section is round (rotationally symmetric, as the baker tests it) or not,
+    chosen per fiber by the error of close-up renders against finer tables (bench/REPORT.md,
+    section 10; :func:`usdfiber.bcsdf.render_settings_for` applies it to a table request).
+
+    A round fiber has one incoming azimuth, so the paper's 2 degree grid costs it 45
+    directions (under a minute on 2 idle cores), and on a polyester close-up it is within the
+    render's noise where 6 degree tables dim the highlight by 13 % (a 16 % error on 4 x 4 pixel
+    blocks, 3.8x the noise between two render seeds): such fibers get
+    :data:`usdfiber.bake.settings.ROUND_RENDER_RESOLUTION_DEG`. Other fibers trace every azimuth (900 directions at 6
+    degrees, 8,100 at 2), and silk's wider lobes lose a few percent of the highlight to 5-6
+    degree bins: they get :data:`usdfiber.bake.settings.RENDER_BAKE_SETTINGS`. ``resolution_deg`` and
+    ``photons``, when given, override the choice for every fiber (``--bake-resolution``,
+    ``--bake-photons``).
+    """
+    st = RENDER_BAKE_SETTINGS
+    if resolution_deg is not None:
+        st = replace(st, resolution_deg=float(resolution_deg), incoming_deg=None)
+    elif round_profile:
+        st = replace(st, resolution_deg=ROUND_RENDER_RESOLUTION_DEG, incoming_deg=None)
+    if photons is not None:
+        st = replace(st, photons=int(photons))
+    return st

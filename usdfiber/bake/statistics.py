@@ -120,6 +120,13 @@ class DirectionStatistics:
             w = w0 * np.exp(-s * L) if s > 0 else w0
             h[k] = np.bincount(idx, weights=w, minlength=nb)
             gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+        if getattr(r, "histogram", None) is not None:
+            # Exits deposited as expectations, already binned in the tracer at these levels.
+            hb = r.histogram_bins
+            if hb.n_bins != nb or not np.allclose(hb.levels, ctx.levels_um, rtol=1e-6, atol=0.0):
+                raise ValueError("the tracer's expected-value histogram has other bins or levels than the table")
+            h += r.histogram[:, 0]
+            gl += r.histogram[:, 1]
         if ctx.cuticle is None:
             norm = float(r.n_hit)
         else:

@@ -42,9 +42,26 @@ others, chosen uniformly, with probability (their number) / K (Russian roulette,
 are as long as without splitting), estimates the same far field. A smooth surface draws the K
 Fresnel choices at once, inside the kernel. The result then holds several weighted exits per
 photon (:attr:`TraceResult.weight`). Its cost and gain: bench/REPORT.md, section 7.
+
+The expected-value estimator at the outer boundary (``expected=K``, extruded fibers): at a
+microfacet event of a walk on an outer face where leaving is for good (an edge of the outline's
+convex hull, :attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line), the
+outcome "the branch that ends outside is taken (reflection on the outside, refraction from the
+material), then the next height step leaves the microsurface" is replaced by its expectation
+w E_m[P_side(m) G_leave(h, wo(m)) 1{settle(wo(m)) in bin}] over the normals m visible from wi,
+estimated with K normals of a randomly shifted rank-1 lattice and histogrammed at every
+absorption level (:class:`ExitHistogram`). The real walk goes on; if it then takes exactly that
+outcome it ends unrecorded (deposit and kill cover the same outcomes, so the estimate is
+unbiased). Events are queued in the loop and their K normals evaluated between phases, on just
+the events (in the loop every lane would pay for them at every iteration). Other faces, normals
+seen from below the macro surface and forced walks take the plain estimator: the choice
+depends on the state only. A smooth outer boundary deposits its exiting Fresnel branch with
+weight w P_out and continues the other with w (1 - P_out) (Russian roulette below
+``_RR_WEIGHT``). Its cost and gain: bench/REPORT.md, section 7.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -53,9 +70,10 @@ import numpy as np
 from usdfiber.backend import mitsuba
 from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
-from usdfiber.bake.settings import MAX_SPLIT_WALKS
+from usdfiber.bake.settings import (EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES, MAX_EXPECTED_NORMALS,
+                                    MAX_SPLIT_WALKS)
 
-__all__ = ["FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
+__all__ = ["ExitHistogram", "FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
 
 
 @dataclass
@@ -69,6 +87,10 @@ class TraceResult:
     ``weight`` is each exit's weight at zero absorption: None means one exit of weight 1 per
     photon that hit (the plain estimator); with splitting a photon leaves several exits of
     fractional weight (a photon whose path ended inside a split has no row of its own).
+    With the expected-value estimator, ``histogram`` (levels, 2, bins) float64 holds the exits
+    deposited as expectations, binned in the kernel into ``histogram_bins`` at its absorption
+    levels (summed weight, and weight x L, per bin; not divided by ``n_hit``); the rows hold
+    the other exits.
     """
 
     directions: np.ndarray          # (M, 3) float32
@@ -86,6 +108,17 @@ class TraceResult:
     seconds: float = 0.0            # wall time of the trace (mesh build excluded)
     extra: dict = field(default_factory=dict)
     weight: np.ndarray | None = None  # (M,) float32 exit weights; None: all 1
+    histogram: np.ndarray | None = None      # (levels, 2, bins) float64, expected exits
+    histogram_bins: "ExitHistogram | None" = None
+
+    def histogram_level(self, sigma_a: float) -> int:
+        """Index of absorption ``sigma_a`` (1/um) among the histogram's levels (ValueError if absent)."""
+        lv = np.asarray(self.histogram_bins.levels, dtype=np.float64)
+        k = np.flatnonzero(np.isclose(lv, float(sigma_a), rtol=1e-6, atol=0.0))
+        if not k.size:
+            raise ValueError(f"sigma_a {sigma_a} is not one of the expected-value histogram's levels "
+                             f"{list(self.histogram_bins.levels)}")
+        return int(k[0])
 
     def exit_weights(self) -> np.ndarray:
         """(M,) float64 weight of each exit at zero absorption (0 for cut photons)."""
@@ -117,8 +150,14 @@ class TraceResult:
         return w * self.exit_weights().reshape((-1,) + (1,) * s.ndim)
 
     def albedo(self, sigma_a: float | np.ndarray = 0.0) -> float | np.ndarray:
-        """Surviving weight / photons that hit, for absorption ``sigma_a`` (1/um)."""
-        return self.weights(sigma_a).sum(axis=0) / max(self.n_hit, 1)
+        """Surviving weight / photons that hit, for absorption ``sigma_a`` (1/um); with an
+        expected-value histogram, ``sigma_a`` must be among its levels."""
+        total = self.weights(sigma_a).sum(axis=0)
+        if self.histogram is not None:
+            s = np.atleast_1d(np.asarray(sigma_a, dtype=np.float64))
+            extra = np.array([self.histogram[self.histogram_level(x), 0].sum() for x in s])
+            total = total + (extra[0] if np.ndim(sigma_a) == 0 else extra)
+        return total / max(self.n_hit, 1)
 
 
 @dataclass
@@ -133,6 +172,7 @@ class FiberScene:
     face_normals: Any   # mi.Float, flat (F*3) geometric normals
     cuticle: tuple[float, float, float] | None
     outer: Any = None   # mi.UInt32, (F,): 1 where the face is on the outer surface
+    hull: Any = None    # mi.UInt32, (F,): 1 where it is on an edge of the outline's convex hull
 
 
 def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **mesh_kw: Any) -> FiberScene:
@@ -149,6 +189,8 @@ def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **m
         face_normals=mi.Float(mesh.face_normals.astype(np.float32).ravel()),
         cuticle=cuticle,
         outer=mi.UInt32(np.asarray(mesh.outer_faces, dtype=np.uint32)),
+        hull=mi.UInt32(np.asarray(mesh.outer_hull if mesh.outer_hull is not None
+                                  else np.zeros(len(mesh.faces), bool), dtype=np.uint32)),
     )
 
 
@@ -176,6 +218,56 @@ _NEWTON = 48             # bracketed Newton steps of the below-horizon slope inv
 #: light leaves after many hits of the outer surface (bench/REPORT.md, section 7).
 _SPLIT_HITS = 64
 _SPLIT_CHUNK = 1 << 21   # splitting: most walks traced together between phases
+#: Expected-value estimator: the in-kernel histograms of one launch (float64, every level,
+#: weight and weight x L per bin, per direction of the launch) take at most this many bytes;
+#: launches are cut at direction boundaries to stay below it (one direction alone may exceed it).
+_HIST_BYTES = EXPECTED_HIST_BYTES
+#: Expected-value estimator: most photons per launch at a rough boundary (a phase queues at most
+#: one event per photon and iteration: 2^18 x 8).
+_EV_LANES = 1 << 18
+#: Expected-value estimator: events queued before their normals are evaluated (18 fields of 4
+#: bytes each: 302 MB), or one phase's room if larger (at most _EV_LANES x 8, fewer events).
+_EV_QUEUE = EXPECTED_QUEUE_BYTES // 72
+#: Expected-value estimator at a smooth boundary: a photon whose weight falls below this plays
+#: Russian roulette (survives with probability weight / _RR_WEIGHT, at that weight).
+_RR_WEIGHT = 0.25
+
+
+@dataclass(frozen=True)
+class ExitHistogram:
+    """Output bins of the expected-value estimator's in-kernel histograms.
+
+    ``step`` is the bin size in radians of a :class:`~usdfiber.bake.grid.Grid`'s outgoing bins
+    (``n_theta`` rows of theta_o from -90 deg, ``n_phi`` columns of phi_o from 0), ``levels``
+    the absorption coefficients sigma_a (1/um) at which exits are weighted by exp(-sigma_a L).
+    """
+
+    step: float
+    n_theta: int
+    n_phi: int
+    levels: tuple[float, ...]
+
+    @classmethod
+    def for_grid(cls, grid: Any, levels: Sequence[float]) -> "ExitHistogram":
+        return cls(float(grid.step), int(grid.n_theta_o), int(grid.n_phi_o), tuple(float(x) for x in levels))
+
+    @property
+    def n_bins(self) -> int:
+        return self.n_theta * self.n_phi
+
+    @property
+    def bytes_per_direction(self) -> int:
+        return len(self.levels) * 2 * self.n_bins * 8
+
+
+def _lattice_generator(K: int) -> int:
+    """Second coordinate's generator of the K-point rank-1 lattice (1, a) / K: the integer
+    nearest K / golden ratio that is coprime to K (the Fibonacci lattice when K is a Fibonacci
+    number), so that both coordinates of the points are stratified."""
+    a = max(1, int(round(K * 0.6180339887498949)))
+    while math.gcd(a, K) != 1:
+        a -= 1
+    return a
 
 
 def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
@@ -192,24 +284,34 @@ def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
     return F(dr.select(vertical, dr.select(wz > 0.0, 0.0, -1.0), lam))
 
 
-def _height_step(dr: Any, F: Any, wr: Any, hr: Any, u: Any, alpha: Any) -> tuple[Any, Any]:
-    """One Smith height step of a microsurface walk (Heitz et al. 2016), uniform heights.
-
-    ``wr``: travel direction in the (mirrored) local frame, ``hr`` the height in [-1, 1]. An
-    upward ray escapes with probability G1 = C1(h)^Lambda, C1(h) = (h + 1) / 2; otherwise (and
-    always for a downward ray) the next hit is where C1(h') = C1(h) / (1 - u)^(1 / Lambda).
-    Returns (leave, new height).
+def _escape_probability(dr: Any, F: Any, wr: Any, hr: Any, alpha: Any) -> tuple[Any, Any]:
+    """Probability that the next height step of a walk at height ``hr`` travelling along ``wr``
+    (mirrored local frame) leaves the microsurface: G1 = C1(h)^Lambda(wr) for an upward ray
+    (C1(h) = (h + 1) / 2), 1 for a vertical one (the step's shortcut), 0 downwards.
+    Returns (probability, Lambda, C1), the last two for :func:`_height_step`.
     """
     lam = _beckmann_lambda(dr, F, wr.z, alpha)
     c1 = dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
     up = wr.z > 0.0
     g1 = dr.select(up & (c1 > 0.0), dr.exp(lam * dr.log(dr.maximum(c1, 1e-30))), 0.0)
+    return F(dr.select(wr.z > 0.9999, 1.0, g1)), lam, c1
+
+
+def _height_step(dr: Any, F: Any, wr: Any, hr: Any, u: Any, alpha: Any) -> tuple[Any, Any]:
+    """One Smith height step of a microsurface walk (Heitz et al. 2016), uniform heights.
+
+    ``wr``: travel direction in the (mirrored) local frame, ``hr`` the height in [-1, 1]. An
+    upward ray escapes with probability G1 = C1(h)^Lambda, C1(h) = (h + 1) / 2
+    (:func:`_escape_probability`); otherwise (and always for a downward ray) the next hit is
+    where C1(h') = C1(h) / (1 - u)^(1 / Lambda). Returns (leave, new height).
+    """
+    g1, lam, c1 = _escape_probability(dr, F, wr, hr, alpha)
     lam_s = dr.select(lam == 0.0, -1.0, lam)
     c1n = c1 * dr.exp(-dr.log(dr.maximum(1.0 - u, 1e-30)) / lam_s)
     c1n = dr.select(wr.z < -0.9999, u * c1, c1n)
     hn = dr.clip(2.0 * dr.minimum(c1n, 1.0) - 1.0, -1.0, 1.0)
     hn = dr.select(dr.abs(wr.z) < 1e-4, hr, hn)
-    leave = (up & (u > 1.0 - g1)) | (wr.z > 0.9999)
+    leave = (u > 1.0 - g1) | (wr.z > 0.9999)
     return leave, F(hn)
 
 
@@ -293,13 +395,16 @@ class _Launch:
 
 
 def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, max_bounces: int,
-                 max_steps: int, mode: str, phase_steps: int = 8, split: int = 0) -> dict:
+                 max_steps: int, mode: str, phase_steps: int = 8, split: int = 0, expected: int = 0,
+                 histogram: ExitHistogram | None = None) -> dict:
     """Trace the photons of ``launch`` (any mix of incoming directions) in one kernel.
 
     Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces``, ``leaks`` and
     ``forced`` per lane, and ``w``, the lane's final weight, and ``deposits`` (lane, direction,
     L, weight, bounces of every exit deposited on the way) when ``split`` (K walks per outer
-    boundary hit) is on. The loop runs in phases of ``phase_steps`` iterations; between
+    boundary hit) is on. With ``expected`` (K normals per event) the expected exits are
+    histogrammed in the kernel: ``hist`` (directions b0 .. b0 + n - 1 of the launch, with
+    ``hist_first`` = b0) is (n, levels, 2, bins) float64, the summed weight and weight x L. The loop runs in phases of ``phase_steps`` iterations; between
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
     the macro surface are drawn by the exact float64 inversion on just those lanes. Directions
@@ -337,6 +442,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         raise ValueError("splitting needs an extruded fiber (no cuticle scales)")
     outer, outer_convex = fs.outer, bool(mesh.outer_convex)
     inv_k = dr.opaque(F, 1.0 / max(split, 1))
+    ev = int(expected)
+    if ev and (split or not z_inv or histogram is None):
+        raise ValueError("the expected-value estimator needs an extruded fiber, a histogram and no splitting")
 
     # Photon i of stream mix: the stream PCG32(size, mix, mix >> 1) gives its lane i.
     rng = mi.PCG32(size=n)
@@ -394,6 +502,64 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                        "sa": dr.zeros(U, n), "sb": dr.zeros(U, n), "ns": dr.zeros(U, n)})
     # Deposits of the splitting estimator: buffers of the current phase (replaced between phases).
     dep: dict[str, Any] = {}
+    if ev:
+        # Expected-value estimator at the outer boundary: the photon's weight (w; smooth
+        # boundaries split it between the two Fresnel branches), whether its boundary event is
+        # on a face where leaving is for good (evf: an edge of the outline's convex hull), and
+        # whether the branch its walk just took ends outside (evo: then leaving at the next
+        # height step is the outcome whose expectation was deposited).
+        st["w"] = dr.full(F, 1.0, n)
+        st["evf"] = dr.full(B, False, n)
+        if rough:
+            st["evo"] = dr.full(B, False, n)
+        hist_first = int(launch.beam.min()) if n else 0
+        hist_n = (int(launch.beam.max()) - hist_first + 1) if n else 1
+        nlev, nbin = len(histogram.levels), histogram.n_bins
+        hist = dr.zeros(mi.Float64, hist_n * nlev * 2 * nbin)
+        # A copy of the histograms per thread (plain adds, merged after each launch of the
+        # deposit kernel: the queue is flushed rarely) where that fits _HIST_BYTES; float64
+        # atomics (a compare-and-swap loop each, 3-4x slower here) otherwise.
+        hist_mode = (dr.ReduceMode.Expand if dr.width(hist) * 8 * max(dr.thread_count(), 1) <= _HIST_BYTES
+                     else dr.ReduceMode.Direct)
+        hist_beam = U(launch.beam.astype(np.uint32) - np.uint32(hist_first))
+        lev_o = [dr.opaque(F, float(x)) for x in histogram.levels]
+        step_inv = dr.opaque(F, 1.0 / histogram.step)
+        step_inv64 = dr.opaque(mi.Float64, 1.0 / histogram.step)
+        nth_o, nph_o = dr.opaque(U, histogram.n_theta), dr.opaque(U, histogram.n_phi)
+        lat_a = _lattice_generator(ev)
+        inv_ev = dr.opaque(F, 1.0 / ev)
+
+    def deposit_expected(hb: Any, L: Any, mask: Any, d: Any, wt: Any, att: list) -> None:
+        """Histogram an exit of weight ``wt`` along ``d`` (lanes ``mask``; ``hb``: their direction
+        in the launch's histograms, ``L``: their path length) at every absorption level (``att``:
+        exp(-sigma_k L)): weight and weight x L of its bin, as
+        :meth:`usdfiber.bake.grid.Grid.bin_index` bins it."""
+        # theta_o in float64, as numpy bins: a smooth extruded fiber sends all its light to
+        # theta_o = -theta_i, which may lie on a bin edge (float32 could pick the other row).
+        th = dr.asin(dr.clip(mi.Float64(d.z), -1.0, 1.0))
+        ph = dr.atan2(d.y, d.x)
+        ph = dr.select(ph < 0.0, ph + 2.0 * math.pi, ph)
+        row = U(dr.clip(dr.floor((th + 0.5 * math.pi) * step_inv64), 0.0, 1e9))
+        row = dr.minimum(row, nth_o - 1)
+        col = U(dr.maximum(dr.floor(ph * step_inv), 0.0))
+        col = dr.select(col >= nph_o, col - nph_o, col)
+        base = (hb * nlev * 2) * nbin + row * nph_o + col
+        for k in range(nlev):
+            wk = wt * att[k]
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk), base + (2 * k) * nbin, mask, mode=hist_mode)
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk * L), base + (2 * k + 1) * nbin, mask,
+                              mode=hist_mode)
+
+    def attenuation(L: Any) -> list:
+        """exp(-sigma_k L) of every level, once per event."""
+        return [dr.exp(-lev * L) for lev in lev_o]
+
+    #: Rough outer events waiting for their expected exits (written by the loop, read between
+    #: phases): fields of the state an event needs, one row per event.
+    EV_FIELDS = ("hb", "into", "above", "L", "w", "h", "sg", "r1", "r2", "nx", "ny", "nz", "wx", "wy", "wz",
+                 "gx", "gy", "gz")
+    evq: dict[str, Any] = {}
+    evq_cap = [0]
 
     def settle(d: Any, ngs: Any, p: Any, above: Any) -> tuple[Any, Any]:
         """Direction and offset point of a boundary result that leaves ``above`` (or below).
@@ -485,6 +651,74 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["w"] = dr.select(ended, 0.0, s["w"])
         return V3(dr.select(refl, wo_r, wo_t)), refl, ended
 
+    def expected_event(s: dict, elig: Any, sg: Any, wi: Any, rng: Any) -> None:
+        """Queue a rough outer event (lanes ``elig``, state before the event) for
+        :func:`expected_exits`, with the two numbers that shift its lattice of normals. (Run
+        between phases on just the events, K normals each cost what a few loop iterations of
+        one photon cost; in the loop every lane would pay them at every iteration.)"""
+        into = s["inside"] ^ s["above"]           # on the outside medium now
+        above_out = dr.select(into, s["above"], ~s["above"])
+        h_out = dr.select(into, s["h"], -s["h"]) * sg
+        r1, r2 = rng.next_float32(), rng.next_float32()
+        slot = dr.scatter_inc(evq["count"], U(0), elig)
+        nm, ng = s["nm"], s["ngs"]
+        vals = (dr.gather(U, hist_beam, s["idx"]), U(dr.select(into, 1, 0)), U(dr.select(above_out, 1, 0)),
+                s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z, ng.x, ng.y, ng.z)
+        for k, v in zip(EV_FIELDS, vals):
+            dr.scatter(evq[k], v, slot, elig)
+
+    def expected_exits(used: int) -> None:
+        """Deposit the expected exits of the ``used`` queued rough outer events.
+
+        The outcome replaced: the branch that ends outside (reflected on the outside,
+        transmitted from the material; probability P_side = F or 1 - F), then leaving at the
+        next height step (probability G_leave, at the same height, mirrored across the
+        surface after a refraction) and so the fiber, for good on a hull face. Its expected
+        contribution w E_m[P_side G_leave 1{settle(wo(m)) in bin}], m visible from wi, is
+        estimated with K normals from a randomly shifted rank-1 lattice over the two numbers of
+        the visible-normal sampler (each point uniform: unbiased; the lattice stratifies them),
+        each deposited with weight w P_side G_leave / K.
+        """
+        sel = dr.arange(U, used)
+        e = {k: dr.gather(type(evq[k]), evq[k], sel) for k in EV_FIELDS}
+        into, above_out = e["into"] != 0, e["above"] != 0
+        frame = mi.Frame3f(V3(e["nx"], e["ny"], e["nz"]))
+        wi, ngs, sg = V3(e["wx"], e["wy"], e["wz"]), V3(e["gx"], e["gy"], e["gz"]), e["sg"]
+        att = attenuation(e["L"])
+        valid = dr.full(B, True, used)
+        for j in range(ev):
+            u1 = e["r1"] + j * (1.0 / ev)
+            u2 = e["r2"] + ((j * lat_a) % ev) * (1.0 / ev)
+            u1 = dr.select(u1 >= 1.0, u1 - 1.0, u1)
+            u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
+            m, _ = distr.sample(wi, mi.Point2f(u1, u2))
+            F_r, wo_r, wo_t = fresnel_branches(wi, V3(m), into)
+            wo = V3(dr.normalize(dr.select(into, wo_r, wo_t)))
+            p_side = dr.select(into, F_r, 1.0 - F_r)
+            g, _, _ = _escape_probability(dr, F, dr.select(into, wo, -wo), e["h"], alpha_o)
+            d_out, _ = settle(V3(frame.to_world(wo * sg)), ngs, V3(0.0), above_out)
+            wt = e["w"] * p_side * g * inv_ev
+            deposit_expected(e["hb"], e["L"], valid & (wt > 0.0), d_out, wt, att)
+        dr.eval(hist)
+
+    def expected_smooth(s: dict, elig: Any, d: Any, nm: Any, inside: Any, rng: Any) -> tuple[Any, Any, Any]:
+        """Expected value at a smooth outer boundary (lanes ``elig``): the branch that ends
+        outside (probability P_out) leaves for good and is deposited with weight w P_out; the
+        photon continues along the other with weight w (1 - P_out), with Russian roulette
+        below _RR_WEIGHT. Returns the continuing direction, whether it is the reflected one,
+        and the lanes that end."""
+        F_r, wo_r, wo_t = fresnel_branches(-d, nm, ~inside)
+        wo_r, wo_t = V3(dr.normalize(wo_r)), V3(dr.normalize(wo_t))
+        p_out = dr.select(inside, 1.0 - F_r, F_r)
+        d_out, _ = settle(dr.select(inside, wo_t, wo_r), s["ngs"], s["p"], ~inside)
+        deposit_expected(dr.gather(U, hist_beam, s["idx"]), s["L"], elig & (p_out > 0.0), d_out, s["w"] * p_out,
+                         attenuation(s["L"]))
+        w = s["w"] * (1.0 - p_out)
+        q = dr.minimum(w * (1.0 / _RR_WEIGHT), 1.0)
+        ended = elig & (rng.next_float32() >= q)
+        s["w"] = dr.select(elig, dr.select(ended, 0.0, w / dr.maximum(q, 1e-30)), s["w"])
+        return V3(dr.select(inside, wo_r, wo_t)), inside, ended
+
     def cond(s: dict) -> Any:
         c = s["active"] & (s["steps"] < s_lim)
         if split_walks:
@@ -508,6 +742,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             # A walk that is forced out leaves along its current direction, on the side it points to.
             s["above"] = dr.select(forced, dr.dot(s["d"], s["nm"]) > 0.0, s["above"])
             finish(s, test & (leave | forced))
+            if ev:
+                # Leaving now, after a branch that ends outside, is the outcome whose expectation
+                # the event deposited: the photon ends here, unrecorded.
+                gone = test & leave & s["evo"]
+                s["evo"] = s["evo"] & ~test
+                active = active & ~gone
+                s["w"] = dr.select(gone, 0.0, s["w"])
             cont = s["walking"]                        # still walking: scatter again below
         p, d, inside = s["p"], s["d"], s["inside"]
 
@@ -603,6 +844,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["nm"] = dr.select(hit, nm, s["nm"])
         s["above"] = s["above"] | hit
         s["bounces"] = U(s["bounces"] + dr.select(hit, 1, 0))
+        if ev:
+            # Leaving through this face is for good: an outer face on the outline's convex hull.
+            s["evf"] = dr.select(hit, dr.gather(U, fs.hull, pi.prim_index, hit) != 0, s["evf"])
         oh = B(False)
         if split:
             # A hit on the outer surface is split.
@@ -633,10 +877,18 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 first = hit & (s["bounces"] == 1)
                 u1, u2, u3 = (dr.select(first, s["q"][k], u) for k, u in enumerate((u1, u2, u3)))
             below = sc & ~s["has_m"] & (wi.z < 1e-3)
+            if ev:
+                # Normals seen from below the macro surface (drawn between phases) take the
+                # plain estimator: the choice depends on the state only.
+                elig = sc & s["evf"] & ~s["has_m"] & ~below
+                expected_event(s, elig, sg, wi, rng)
             m_fast, _ = distr.sample(wi, mi.Point2f(u1, u2))
             m = dr.select(s["has_m"], s["mq"], V3(m_fast))
             wo, refl = fresnel_event(wi, m, s["inside"] ^ s["above"], u3)
             go = sc & ~below
+            if ev:
+                # The branch that ends outside: reflected on the outside, transmitted inside.
+                s["evo"] = dr.select(go, elig & ~(refl ^ (s["inside"] ^ s["above"])), s["evo"])
             s["d"] = dr.select(go, V3(frame.to_world(wo * sg)), s["d"])
             s["above"] = dr.select(go & ~refl, ~s["above"], s["above"])
             s["wsteps"] = U(s["wsteps"] + dr.select(go, 1, 0))
@@ -652,6 +904,12 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 wo, refl, ended = split_smooth(s, oh, d, nm, inside, u, rng)
                 wo_p, refl_p = fresnel_event(-d, nm, ~inside, u)
                 wo, refl = dr.select(oh, wo, wo_p), dr.select(oh, refl, refl_p)
+                active = active & ~ended
+            elif ev:
+                elig = hit & s["evf"]
+                wo_e, refl_e, ended = expected_smooth(s, elig, d, nm, inside, rng)
+                wo_p, refl_p = fresnel_event(-d, nm, ~inside, u)
+                wo, refl = dr.select(elig, wo_e, wo_p), dr.select(elig, refl_e, refl_p)
                 active = active & ~ended
             else:
                 wo, refl = fresnel_event(-d, nm, ~inside, u)
@@ -803,6 +1061,19 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     while True:
         limit += int(phase_steps)
         s_lim = dr.opaque(U, limit)
+        if ev and rough:
+            # A lane queues at most one event per iteration: room for every iteration left to it.
+            # The queue holds the events of several phases and is flushed when this phase's room
+            # might not fit (each flush merges the per-thread histograms once).
+            room = int(dr.sum(dr.select(st["active"], limit - dr.minimum(st["steps"], limit), 0))[0]) + 1
+            pending = int(evq["count"][0]) if evq else 0
+            if pending and pending + room > evq_cap[0]:
+                expected_exits(pending)
+                evq["count"] = dr.zeros(U, 1)
+            if not evq or room > evq_cap[0]:
+                evq_cap[0] = max(room, _EV_QUEUE)
+                evq.update({k: dr.empty(U if k in ("hb", "into", "above") else F, evq_cap[0]) for k in EV_FIELDS})
+                evq["count"] = dr.zeros(U, 1)
         if split and not rough:
             # A lane deposits at most once per iteration: room for every iteration left to it.
             room = int(dr.sum(dr.select(st["active"], limit - dr.minimum(st["steps"], limit), 0))[0]) + 1
@@ -814,6 +1085,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             (st,) = dr.while_loop((st,), cond, body, mode="evaluated",
                                   compress=dr.width(st["active"]) > 1, label="photon")
         dr.eval(st)                 # one launch for every output of the loop
+        if ev and rough:
+            used = int(evq["count"][0])
+            if used > evq_cap[0]:
+                raise RuntimeError(f"the expected-value estimator queued {used} events into room for {evq_cap[0]}")
         if split and not rough:
             used = int(dep["count"][0])
             if used > room:
@@ -847,7 +1122,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             dr.scatter(out_hit, st["hit_any"], st["idx"])
             dr.scatter(out_cut, st["cut"], st["idx"])
             dr.scatter(out_b, st["bounces"], st["idx"])
-            if split:
+            if split or ev:
                 dr.scatter(out_w, st["w"], st["idx"])
             for k, out in counters.items():
                 if k in st:
@@ -856,9 +1131,17 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 break
             st = _gather_state(mi, dr, st, dr.compress(act))
             dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters, st)
+    if ev and rough and evq:
+        used = int(evq["count"][0])
+        if used:
+            expected_exits(used)
     dr.eval(out_d, out_L, out_hit, out_cut, out_b, counters, out_w)
     dn = np.asarray(out_d.numpy())
     extra: dict[str, Any] = {}
+    if ev:
+        extra["w"] = np.asarray(out_w.numpy())
+        extra["hist"] = np.asarray(hist.numpy()).reshape(hist_n, nlev, 2, nbin)
+        extra["hist_first"] = hist_first
     if split:
         extra["w"] = np.asarray(out_w.numpy())
         extra["deposits"] = {k: (np.concatenate(v) if v else np.zeros(0, np.uint32 if k in ("lane", "bounces")
@@ -890,6 +1173,8 @@ def trace(
     max_steps: int | None = None,
     sampler: str = "independent",
     split: int = 0,
+    expected: int = 0,
+    histogram: ExitHistogram | None = None,
 ) -> TraceResult:
     """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
 
@@ -912,11 +1197,18 @@ def trace(
     exit of weight w / K; the photon continues with one of the other results, chosen
     uniformly, with probability (their number) / K (so paths are no longer than without
     splitting). At a smooth boundary the K walks are K Fresnel choices. The result then
-    has several weighted exits per photon (``TraceResult.weight``). Many directions are faster together: :func:`trace_many`.
+    has several weighted exits per photon (``TraceResult.weight``). ``expected=K`` (extruded
+    fibers; needs ``histogram``, the bins and absorption levels) is the expected-value
+    estimator at the outer boundary: at every microfacet event on an outer face of the outline's
+    convex hull it histograms the expected exit of the branch that ends outside and leaves the
+    microsurface, over K visible normals (see the module docstring); the result's
+    ``histogram`` holds those exits, its rows the others. Many directions are faster
+    together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
-                      max_steps=max_steps, sampler=sampler, split=split)[0]
+                      max_steps=max_steps, sampler=sampler, split=split, expected=expected,
+                      histogram=histogram)[0]
 
 
 def trace_many(
@@ -934,6 +1226,8 @@ def trace_many(
     max_steps: int | None = None,
     sampler: str = "independent",
     split: int = 0,
+    expected: int = 0,
+    histogram: ExitHistogram | None = None,
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -972,6 +1266,15 @@ def trace_many(
         raise ValueError(f"split must be an integer from 0 (off) to {MAX_SPLIT_WALKS}, got {split!r}")
     if split and not fs.mesh.z_invariant:
         raise ValueError("split needs an extruded fiber: the escape test of fibers with cuticle scales is not built")
+    if not (isinstance(expected, (int, np.integer)) and 0 <= int(expected) <= MAX_EXPECTED_NORMALS):
+        raise ValueError(f"expected must be an integer from 0 (off) to {MAX_EXPECTED_NORMALS}, got {expected!r}")
+    expected = int(expected)
+    if expected and split:
+        raise ValueError("expected and split cannot be combined (both replace the outer surface's exits)")
+    if expected and not fs.mesh.z_invariant:
+        raise ValueError("expected needs an extruded fiber: leaving through cuticle scales is not known to be for good")
+    if expected and histogram is None:
+        raise ValueError("expected needs a histogram (ExitHistogram: the output bins and absorption levels)")
     if sampler == "sobol" and int(counts.max()) > 1 << 32:
         raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
@@ -1003,17 +1306,30 @@ def trace_many(
     n_hit = np.zeros(nd, dtype=np.int64)
     n_leaks = np.zeros(nd, dtype=np.int64)
     n_forced = np.zeros(nd, dtype=np.int64)
-    for a in range(0, total, int(batch)):
-        b = min(a + int(batch), total)
+    hists = (np.zeros((nd, len(histogram.levels), 2, histogram.n_bins)) if expected else None)
+    # Expected values: a launch spans few enough directions for its histograms to stay below
+    # _HIST_BYTES (launches end at a direction's end instead).
+    span = max(1, _HIST_BYTES // histogram.bytes_per_direction) if expected else nd
+    lanes = min(int(batch), _EV_LANES) if expected and alpha > 0.0 else int(batch)
+    a = 0
+    while a < total:
+        b = min(a + lanes, total, int(starts[min(nd, int(np.searchsorted(starts, a, side="right") - 1) + span)]))
         lane = np.arange(a, b, dtype=np.int64)
         beam = (np.searchsorted(starts, lane, side="right") - 1).astype(np.uint32)
         launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
-                           max_steps=int(max_steps), mode=mode, split=int(split))
+                           max_steps=int(max_steps), mode=mode, split=int(split), expected=expected,
+                           histogram=histogram)
+        a = b
         hit = out["hit_any"]
         n_hit += np.bincount(beam, weights=hit, minlength=nd).astype(np.int64)
         n_leaks += np.bincount(beam, weights=out["leaks"], minlength=nd).astype(np.int64)
         n_forced += np.bincount(beam, weights=out["forced"], minlength=nd).astype(np.int64)
+        if expected:
+            f0 = int(out["hist_first"])
+            hists[f0:f0 + len(out["hist"])] += out["hist"]
+            # Photons whose last exit was deposited as an expectation (weight 0) leave no row.
+            hit = hit & ((out["w"] > 0.0) | out["cut"])
         if split:
             # Photons whose path ended inside a split left all their weight in deposits.
             hit = hit & ((out["w"] > 0.0) | out["cut"])
@@ -1022,7 +1338,7 @@ def trace_many(
         kept["L"].append(out["L"][hit])
         kept["cut"].append(out["cut"][hit])
         kept["bounces"].append(out["bounces"][hit])
-        kept["w"].append(out["w"][hit] if split else np.ones(int(hit.sum()), np.float32))
+        kept["w"].append(out["w"][hit] if (split or expected) else np.ones(int(hit.sum()), np.float32))
         if split:
             dp = out["deposits"]
             kept["beam"].append(beam[dp["lane"]])
@@ -1058,6 +1374,8 @@ def trace_many(
             beta_deg=float(beta_deg),
             seconds=seconds * float(counts[j]) / total,
             extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j])},
-            weight=cat["w"][r].astype(np.float32) if split else None,
+            weight=cat["w"][r].astype(np.float32) if (split or expected) else None,
+            histogram=hists[j] if expected else None,
+            histogram_bins=histogram if expected else None,
         ))
     return results

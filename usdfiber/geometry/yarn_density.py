@@ -21,6 +21,17 @@ This is the ensemble mean of the expanded yarn: it has no count noise (the Jense
 size, not with the number of fibers. Not included: flyaways (hairs and loops, a few percent
 of a yarn's fiber length at the presets' densities) and staple gaps (the cuts remove no
 length); cross sections lie in the plane normal to the centre line, as in the expansion.
+
+Homogenization bias (:func:`coverage_map`). A voxel wider than the gaps between yarns spreads
+their optical depth over the gaps: a column of the cloth transmits the mean of exp(-tau) over
+its area, the voxel exp(-mean tau), and by Jensen's inequality the voxel is more opaque (it
+loses the gaps' transmission). Unlike the count noise of fibers in a voxel
+(:func:`usdfiber.geometry.voxelize.count_noise_deficit`) this bias does not vanish for yarns
+voxelized from their density: it is the weave's own structure, and on a sheer weave it is the
+volume's largest error. :class:`CoverageMap` measures it on a window of the cloth: the yarns'
+optical depth along the cloth's normal on a fine raster (each yarn a uniform disc of its
+fibers' cross sections, ``tau = (n D / (pi r^2)) 2 sqrt(r^2 - rho^2)`` at distance rho from
+its centre line), then the same raster averaged over voxel columns.
 """
 from __future__ import annotations
 
@@ -36,8 +47,12 @@ from usdfiber.geometry.yarn_centre import CentreFrames, CentreLine
 from usdfiber.geometry.yarn_fibers import FiberSet, density_profile, migrating, ply_fibers
 from usdfiber.spec.yarn import YarnError, YarnParams
 
-__all__ = ["YarnCurve", "node_counts", "rest_radius_quantiles", "voxelize_yarns", "yarn_pieces"]
+__all__ = ["CoverageMap", "YarnCurve", "coverage_map", "node_counts", "rest_radius_quantiles", "voxelize_yarns",
+           "yarn_optical_depth", "yarn_pieces"]
 
+#: :func:`coverage_map` counts yarns within this many yarn radii of the cloth's plane (a knit is
+#: about three yarn diameters thick).
+COVERAGE_SLAB_RADII = 8.0
 #: Pieces deposited per chunk (memory: about 200 bytes each).
 CHUNK_PIECES = 1 << 20
 
@@ -179,3 +194,163 @@ def voxelize_yarns(curves: Iterable[YarnCurve], params: YarnParams, voxel_size: 
     grid = acc.finish()
     grid.warnings = warnings + grid.warnings
     return grid
+
+
+def yarn_optical_depth(params: YarnParams, fiber_diameter: float, rho: np.ndarray) -> np.ndarray:
+    """Optical depth through a yarn at distance ``rho`` (scene units) from its centre line,
+    across it: its ``fiber_count`` fibers of ``fiber_diameter`` spread uniformly over the disc
+    of the yarn radius (Eq. 3 for fibers seen side on, W = D), ``(n D / (pi r^2)) 2 sqrt(r^2 -
+    rho^2)``; its integral across the yarn is ``n D``, the fibers' summed width."""
+    r = params.yarn_radius
+    rho = np.asarray(rho, np.float64)
+    chord = 2.0 * np.sqrt(np.clip(r * r - rho * rho, 0.0, None))
+    return params.fiber_count * fiber_diameter / (math.pi * r * r) * chord
+
+
+@dataclasses.dataclass(frozen=True)
+class CoverageMap:
+    """The yarns' optical depth along a cloth's normal on a square window of its local plane
+    (module docstring, "Homogenization bias"). ``tau`` (n, n): per texel of ``texel`` scene
+    units; ``centre`` and ``normal``: the window's place; ``axes`` (2, 3): its raster axes (the
+    world axes nearest the plane, as a voxel grid's are)."""
+
+    tau: np.ndarray
+    texel: float
+    centre: np.ndarray
+    normal: np.ndarray
+    axes: np.ndarray
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of the window the yarns cover (optical depth above 1e-3)."""
+        return float(np.mean(self.tau > 1e-3))
+
+    @property
+    def transmittance(self) -> float:
+        """Mean transmittance of the yarns along the normal over the window."""
+        return float(np.mean(np.exp(-self.tau)))
+
+    def _cells(self, voxel: float, phase: tuple[int, int]) -> tuple[np.ndarray, int]:
+        m = max(1, int(round(voxel / self.texel)))
+        n = self.tau.shape[0]
+        i0, j0 = phase
+        k0, k1 = (n - i0) // m, (n - j0) // m
+        return self.tau[i0:i0 + k0 * m, j0:j0 + k1 * m], m
+
+    def opacity_bias(self, voxel: float, phases: int = 4) -> float:
+        """Relative excess opacity of voxel columns ``voxel`` wide over the yarns' own:
+        ``(1 - T_voxels) / (1 - T_yarns) - 1`` (>= 0: Jensen), averaged over ``phases`` x
+        ``phases`` offsets of the voxel lattice. 0 for voxels no wider than a texel; NaN for a
+        window of no yarn or narrower than two voxels."""
+        m = max(1, int(round(voxel / self.texel)))
+        if m == 1:
+            return 0.0
+        if self.tau.shape[0] < 2 * m:
+            return math.nan
+        a_vox = a_yarn = 0.0
+        for oi in range(phases):
+            for oj in range(phases):
+                t, m = self._cells(voxel, ((oi * m) // phases, (oj * m) // phases))
+                ki, kj = t.shape[0] // m, t.shape[1] // m
+                cell = t.reshape(ki, m, kj, m).mean(axis=(1, 3))
+                a_vox += 1.0 - float(np.mean(np.exp(-cell)))
+                a_yarn += 1.0 - float(np.mean(np.exp(-t)))
+        return a_vox / a_yarn - 1.0 if a_yarn > 0 else math.nan
+
+    def voxel_for_bias(self, voxel: float, bound: float) -> float:
+        """The largest of ``voxel``, ``voxel / 2``, ``voxel / 4`` ... whose
+        :meth:`opacity_bias` is within ``bound`` (at least a texel)."""
+        h = float(voxel)
+        while h > self.texel and not (self.opacity_bias(h) <= bound):
+            h *= 0.5
+        return max(h, self.texel)
+
+
+def _plane_axes(normal: np.ndarray) -> np.ndarray:
+    """Two orthonormal in-plane axes: the world axes that lie most in the plane, made
+    orthogonal (a cloth in the xy plane gets x and y, as its voxels have)."""
+    eye = np.eye(3)
+    proj = eye - np.outer(eye @ normal, normal)
+    order = np.argsort(-np.linalg.norm(proj, axis=1))
+    u = proj[order[0]] / np.linalg.norm(proj[order[0]])
+    v = proj[order[1]] - (proj[order[1]] @ u) * u
+    return np.stack([u, v / np.linalg.norm(v)])
+
+
+def coverage_map(curves: Sequence[YarnCurve], params: YarnParams, *, fiber_diameter: float, window: float,
+                 others: Sequence[tuple[Sequence[YarnCurve], YarnParams, float]] = (),
+                 max_texels: int = 768, source: str = "yarns") -> CoverageMap:
+    """The yarns' optical depth along the cloth's normal (:class:`CoverageMap`) on a square of
+    side ``window`` in the cloth's local plane, centred at the yarn point nearest the middle
+    of the curves' bounds, and within the cloth (a smaller window where the cloth is
+    smaller); texels of a sixteenth of a yarn diameter (coarser when the window would exceed
+    ``max_texels`` a side). The plane is the principal plane of the centre-line
+    points within the window (a curved garment is flat at that scale). A yarn that crosses
+    itself within the window counts once where it does. ``others``: more yarns of the same
+    cloth, (curves, params, fiber diameter) per group (a weave's wefts for its warps), whose
+    optical depth adds to the map; ``curves`` alone place the window."""
+    curves = [c for c in curves if len(np.asarray(c.points)) >= 2]
+    if not curves:
+        raise VoxelizeError(f"{source}: no yarn curves to measure the coverage of")
+    if not (math.isfinite(window) and window > 0):
+        raise VoxelizeError(f"{source}: coverage window {window!r}; expected a positive finite length")
+    pts = np.concatenate([np.asarray(c.points, np.float64) for c in curves])
+    if not np.all(np.isfinite(pts)):
+        raise VoxelizeError(f"{source}: yarn points are not all finite (NaN or Inf)")
+    r = params.yarn_radius
+    mid = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    centre = pts[int(np.argmin(np.linalg.norm(pts - mid, axis=1)))]
+    near = pts[np.linalg.norm(pts - centre, axis=1) <= 0.75 * window + r]
+    if len(near) >= 3:
+        _, _, vt = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)
+        normal = vt[-1]
+    else:
+        normal = np.array([0.0, 0.0, 1.0])
+    axes = _plane_axes(normal)
+    # Within the cloth: a window past its edge would count the smear into empty space.
+    q_all = (pts - centre) @ axes.T
+    reach = np.minimum(-q_all.min(axis=0), q_all.max(axis=0)) - r
+    window = float(min(window, 2.0 * max(float(reach.min()), r)))
+    texel = max(r / 8.0, window / max_texels)
+    n = max(1, int(math.ceil(window / texel)))
+    grid = (np.arange(n) + 0.5) * texel - 0.5 * n * texel
+    tau = np.zeros((n, n))
+    half = 0.5 * n * texel
+    for group, gparams, gdia in [(curves, params, fiber_diameter), *others]:
+        _deposit_depth(tau, grid, texel, half, group, gparams, float(gdia), centre, axes, normal)
+    return CoverageMap(tau=tau, texel=texel, centre=centre, normal=normal, axes=axes)
+
+
+def _deposit_depth(tau: np.ndarray, grid: np.ndarray, texel: float, half: float, curves: Sequence[YarnCurve],
+                   params: YarnParams, fiber_diameter: float, centre: np.ndarray, axes: np.ndarray,
+                   normal: np.ndarray) -> None:
+    """Adds the optical depth of ``curves`` (yarns of ``params``) to the raster ``tau``: the
+    parts within the window and within :data:`COVERAGE_SLAB_RADII` yarn radii of its plane
+    (another layer of a garment is not this cloth)."""
+    from scipy.spatial import cKDTree
+
+    r = params.yarn_radius
+    for c in curves:
+        p = np.asarray(c.points, np.float64) - centre
+        q = p @ axes.T
+        inside = np.all(np.abs(q) <= half + r, axis=1) & (np.abs(p @ normal) <= COVERAGE_SLAB_RADII * r)
+        if not inside.any():
+            continue
+        # Densify to a quarter texel so that the nearest sample is the nearest curve point.
+        seg = np.diff(q, axis=0)
+        k = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / (0.25 * texel)).astype(np.int64))
+        keep = inside[:-1] | inside[1:]
+        if not keep.any():
+            continue
+        a, d, k = q[:-1][keep], seg[keep], k[keep]
+        rep = np.repeat(np.arange(len(a)), k)
+        f = (np.arange(len(rep)) - np.repeat(np.cumsum(k) - k, k)) / k[rep]
+        dense = a[rep] + d[rep] * f[:, None]
+        lo = np.searchsorted(grid, dense.min(axis=0) - r)
+        hi = np.searchsorted(grid, dense.max(axis=0) + r)
+        if hi[0] <= lo[0] or hi[1] <= lo[1]:
+            continue
+        gi, gj = np.meshgrid(grid[lo[0]:hi[0]], grid[lo[1]:hi[1]], indexing="ij")
+        dist, _ = cKDTree(dense).query(np.stack([gi.ravel(), gj.ravel()], axis=1), distance_upper_bound=r)
+        tau[lo[0]:hi[0], lo[1]:hi[1]] += yarn_optical_depth(
+            params, fiber_diameter, np.where(np.isfinite(dist), dist, r)).reshape(gi.shape)

@@ -11,9 +11,23 @@
   fiber density without expanding a fiber (:mod:`usdfiber.geometry.yarn_density`: the cost
   follows the yarn length over the voxel size, which makes garments possible). Yarn prims with
   ``yarn:expandFibers = false`` keep their far-field curves.
-* ``auto``: per prim, yarns narrower than :data:`VOLUME_YARN_PIXELS` become a volume, larger
-  ones keep the curve levels of detail (explicit fibers, or the far field below 3 pixels);
-  fiber prims stay curves. The choice is reported per prim.
+* ``auto``: per yarn prim, the volume only where it is not biased: its yarns narrower than
+  :data:`VOLUME_YARN_PIXELS` (a curve would not resolve them) *and* voxels of the footprint
+  that keep the weave's gaps. A voxel wider than the gaps between yarns spreads their optical
+  depth over them and loses the gaps' transmission (Jensen's inequality;
+  :func:`usdfiber.geometry.yarn_density.coverage_map` measures it on a window of the cloth):
+  the volume is chosen when it makes the cloth at most :data:`VOLUME_OPACITY_BOUND` more
+  opaque than its yarns, else the yarns keep their curve levels of detail (the far field
+  below 3 pixels, explicit fibers above), with the predicted excess and the voxel that would
+  resolve the gaps in the report. Fiber prims stay curves. Every choice is reported per prim
+  (``cloth: PATH: MODE (why)``, also in ``render --json``'s warnings).
+
+``--cloth volume`` on yarns whose voxels exceed the bound warns with the prim, the expected
+excess opacity and the voxel size (and grid memory) that would resolve the gaps
+(:func:`homogenization_warning`); it does not refine the voxels itself: keeping a sheer
+Skala 360 weave within the bound takes voxels of 0.6 yarn diameters (0.065 mm, 8x the voxels
+of a 0.13 mm footprint), within 5 % a third of one (64x), at a render cost that grows with
+them (bench/REPORT.md, "Where the voxels meet the weave").
 
 Volumes and curves share the scene, so they shadow and light each other; scenes with volumes
 render with Mitsuba's ``volpath``, which also lets shadow rays pass non-round fibers
@@ -33,9 +47,9 @@ from usdfiber.bake.cache import TableCache
 from usdfiber.bake.settings import BakeError, BakeSettings
 from usdfiber.bcsdf import tables_for_prim
 from usdfiber.geometry.curves import CurveError, axis_scales, curves_from_prim
-from usdfiber.geometry.voxelize import (DEFAULT_BUDGET_BYTES, VoxelGrid, VoxelizeError, polylines_from_segments,
-                                        voxel_size_for_footprint, voxelize_fibers)
-from usdfiber.geometry.yarn_density import YarnCurve, voxelize_yarns
+from usdfiber.geometry.voxelize import (DEFAULT_BUDGET_BYTES, VoxelGrid, VoxelizeError, grid_bytes,
+                                        polylines_from_segments, voxel_size_for_footprint, voxelize_fibers)
+from usdfiber.geometry.yarn_density import CoverageMap, YarnCurve, coverage_map, voxelize_yarns
 from usdfiber.spec.fiber import FiberParams, FiberParamsError
 from usdfiber.spec.yarn import YarnError, YarnParams
 
@@ -45,12 +59,23 @@ from usdfiber.translators.mitsuba.fibers import translate_fibers, yarn_polylines
 from usdfiber.translators.mitsuba.lod import CameraView
 from usdfiber.translators.mitsuba.volume.medium import BRICK_VOXELS, cloth_shapes
 
-__all__ = ["ANALYTIC_YARN_VOXELS", "CLOTH_MODES", "VOLUME_YARN_PIXELS", "VolumeTranslation", "near_plane_warning", "split_cloth",
-           "translate_volumes"]
+__all__ = ["ANALYTIC_YARN_VOXELS", "CLOTH_MODES", "ClothChoice", "VOLUME_OPACITY_BOUND", "VOLUME_YARN_PIXELS",
+           "VolumeTranslation", "homogenization_warning", "near_plane_warning", "split_cloth", "translate_volumes",
+           "yarn_coverage"]
 
 CLOTH_MODES = ("fibers", "volume", "auto")
 #: ``auto``: yarns whose diameter covers fewer pixels than this are drawn as a volume.
 VOLUME_YARN_PIXELS = 1.0
+#: ``auto``: the volume only where its voxels make the cloth at most this much more opaque than
+#: its yarns (relative excess of 1 - transmittance along the normal, predicted by
+#: :func:`yarn_coverage`). Measured (bench/REPORT.md, "Where the voxels meet the weave"): the
+#: Figure 7 knits at +10 % predicted rendered -6.3 % in the image mean against explicit fibers
+#: (+7 %: -4.4 %), the sheer Skala 360 weave at +30 % rendered +37 to +42 % on the cloth.
+VOLUME_OPACITY_BOUND = 0.15
+#: Side of the window the coverage is measured on: this many voxels, at least this many yarn
+#: diameters (several repeats of a weave or knit either way).
+COVERAGE_WINDOW_VOXELS = 6.0
+COVERAGE_WINDOW_YARNS = 16.0
 #: Yarns at most this many voxels wide are voxelized from their fiber density (no expansion).
 ANALYTIC_YARN_VOXELS = 4.0
 #: Without a camera, a volume's voxel is this many fiber diameters.
@@ -76,24 +101,133 @@ def _prim_points(pl: Any, time: Usd.TimeCode) -> np.ndarray:
     return pts @ xf[:3, :3] + xf[3, :3]
 
 
+@dataclass(frozen=True)
+class ClothChoice:
+    """What ``--cloth`` made of one prim, and why: ``mode`` is ``"volume"``, ``"yarn far
+    field"``, ``"explicit fibers"`` or ``"curves"``; the numbers are those the choice was made
+    by (None where not needed). ``str()`` is the report line ``PATH: MODE (why)``."""
+
+    path: str
+    mode: str
+    reason: str
+    yarn_pixels: float | None = None
+    voxel_size: float | None = None
+    opacity_excess: float | None = None
+    coverage: float | None = None
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.mode} ({self.reason})"
+
+    def to_json(self) -> dict[str, Any]:
+        """The choice as a JSON object."""
+        return {k: getattr(self, k) for k in ("path", "mode", "reason", "yarn_pixels", "voxel_size",
+                                              "opacity_excess", "coverage")}
+
+
+def _yarn_curves(pl: Any, time: Usd.TimeCode, yarn: YarnParams) -> list[YarnCurve]:
+    """The yarn centre lines of a prim in world space, sampled twice per B-spline segment."""
+    scale = axis_scales(np.asarray(pl.xform)[:3, :3])[1]
+    width = 2 * yarn.yarn_radius
+    try:
+        geom = curves_from_prim(pl.prim, time, pl.xform, default_width=width / scale if 0 < scale < math.inf else width)
+    except CurveError as exc:
+        raise TranslateError(str(exc)) from None
+    # The samples lie on the curve, far closer together than a voxel (a garment's centre line
+    # has ~20 segments per crossing).
+    return [YarnCurve(pts, rad / yarn.yarn_radius) for pts, rad in yarn_polylines(geom, 2)]
+
+
+def _fiber_diameter(pl: Any, stage: Usd.Stage, time: Usd.TimeCode) -> tuple[FiberParams, float]:
+    try:
+        params = FiberParams.from_prim(pl.prim, time)
+    except FiberParamsError as exc:
+        raise TranslateError(str(exc)) from None
+    return params, params.diameter * 1e-6 / UsdGeom.GetStageMetersPerUnit(stage)
+
+
+def yarn_coverage(curves: Sequence[YarnCurve], yarn: YarnParams, fiber_diameter: float, voxel: float,
+                  source: str = "yarns",
+                  others: Sequence[tuple[Sequence[YarnCurve], YarnParams, float]] = ()) -> CoverageMap:
+    """The yarns' optical depth map (:func:`usdfiber.geometry.yarn_density.coverage_map`) on a
+    window of :data:`COVERAGE_WINDOW_VOXELS` voxels (at least :data:`COVERAGE_WINDOW_YARNS`
+    yarn diameters) a side, with the ``others`` yarn prims of the cloth (a weave's wefts for its
+    warps: the voxels smear the cloth's gaps, not one prim's): its ``opacity_bias(voxel)`` is
+    the volume's predicted excess."""
+    window = max(COVERAGE_WINDOW_VOXELS * voxel, COVERAGE_WINDOW_YARNS * 2.0 * yarn.yarn_radius)
+    try:
+        return coverage_map(curves, yarn, fiber_diameter=fiber_diameter, window=window, others=others,
+                            source=source)
+    except VoxelizeError as exc:
+        raise TranslateError(str(exc)) from None
+
+
+def _excess(cov: CoverageMap, voxel: float) -> float:
+    """The predicted excess opacity; a cloth narrower than two voxels counts as unbounded."""
+    b = cov.opacity_bias(voxel)
+    return math.inf if not math.isfinite(b) else b
+
+
+def homogenization_warning(path: str, cov: CoverageMap, voxel: float, yarn_diameter: float, *,
+                           box: tuple[np.ndarray, np.ndarray] | None = None, n_slots: int = 1,
+                           budget_bytes: int = DEFAULT_BUDGET_BYTES,
+                           bound: float = VOLUME_OPACITY_BOUND) -> str | None:
+    """One line when voxels of ``voxel`` units make the cloth of ``cov`` more than ``bound``
+    more opaque than its yarns: the prim, the expected excess, and the voxel size that keeps
+    within the bound (with the memory of a dense grid over ``box`` at that size, and whether
+    it fits ``budget_bytes``); None when within the bound."""
+    excess = _excess(cov, voxel)
+    if excess <= bound:
+        return None
+    need = cov.voxel_for_bias(voxel, bound)
+    mem = ""
+    if box is not None:
+        ext = np.asarray(box[1], np.float64) - np.asarray(box[0], np.float64)
+        shape = tuple(int(max(1, math.ceil(e / need))) for e in ext)
+        nbytes = grid_bytes(shape, n_slots)          # type: ignore[arg-type]
+        mem = (f", a grid of {nbytes / 2**20:.0f} MiB, " + ("within" if nbytes <= budget_bytes else "over")
+               + f" the budget of {budget_bytes / 2**20:.0f} MiB")
+    what = "more than" if math.isinf(excess) else "about"
+    pct = f"{100 * bound:.0f} %" if math.isinf(excess) else f"{100 * excess:.0f} %"
+    return (f"{path}: {voxel:.3g}-unit voxels spread the yarns ({yarn_diameter:.3g} units wide, coverage "
+            f"{cov.coverage:.2f}) over the gaps between them: the volume is {what} {pct} more opaque than the "
+            f"cloth (bound {100 * bound:.0f} %): expect the cloth's pixels off by as much or more (measured +42 % "
+            f"at +30 %); voxels "
+            f"of {need:.3g} units resolve the gaps{mem}")
+
+
 def split_cloth(placements: Sequence[Any], mode: str, view: CameraView | None, time: Usd.TimeCode,
-                lod_scale: float = 1.0) -> tuple[list[Any], list[Any], list[str]]:
-    """(volume placements, curve placements, one line per prim saying what it became)."""
+                lod_scale: float = 1.0, *, voxels_per_pixel: float = 1.0,
+                voxel_size: float | None = None) -> tuple[list[Any], list[Any], list[ClothChoice]]:
+    """(volume placements, curve placements, per prim a :class:`ClothChoice` saying what it
+    became and why; its ``str()`` is the report line). ``voxels_per_pixel`` and
+    ``voxel_size``: as :func:`translate_volumes` will voxelize, for ``auto``'s prediction."""
     if mode not in CLOTH_MODES:
         raise TranslateError(f"--cloth {mode!r}: expected one of {', '.join(CLOTH_MODES)}")
     vols, curves, notes = [], [], []
+    yarns: dict[str, tuple[list[YarnCurve], YarnParams, float]] = {}
+
+    def yarn_of(pl: Any) -> tuple[list[YarnCurve], YarnParams, float]:
+        """A yarn prim's centre lines, parameters and fiber diameter (once per prim)."""
+        if pl.path not in yarns:
+            try:
+                yp = YarnParams.from_prim(pl.prim, time)
+            except YarnError as exc:
+                raise TranslateError(str(exc)) from None
+            yarns[pl.path] = (_yarn_curves(pl, time, yp), yp, _fiber_diameter(pl, pl.prim.GetStage(), time)[1])
+        return yarns[pl.path]
+
     for pl in placements:
         if mode == "fibers":
             curves.append(pl)
             continue
         if mode == "volume":
             vols.append(pl)
-            notes.append(f"{pl.path}: volume (--cloth volume)")
+            notes.append(ClothChoice(pl.path, "volume", "--cloth volume"))
             continue
         if not pl.prim.HasAPI("FiberYarnAPI") or view is None:
             curves.append(pl)
             why = "explicit fiber curves" if view is None or not pl.prim.HasAPI("FiberYarnAPI") else ""
-            notes.append(f"{pl.path}: curves ({why or 'no camera'})")
+            notes.append(ClothChoice(pl.path, "curves", why or "no camera"))
             continue
         try:
             yarn = YarnParams.from_prim(pl.prim, time)
@@ -101,13 +235,37 @@ def split_cloth(placements: Sequence[Any], mode: str, view: CameraView | None, t
             raise TranslateError(str(exc)) from None
         pts = _prim_points(pl, time)
         px = view.pixels(2 * yarn.yarn_radius, pts) if len(pts) else float("inf")
-        if px * max(lod_scale, 1e-9) < VOLUME_YARN_PIXELS and lod_scale > 0:
+        curve_level = "explicit fibers" if px * lod_scale >= 3 or lod_scale <= 0 else "yarn far field"
+        if not (px * max(lod_scale, 1e-9) < VOLUME_YARN_PIXELS and lod_scale > 0):
+            curves.append(pl)
+            notes.append(ClothChoice(pl.path, curve_level, f"yarns {px:.2g} px wide", yarn_pixels=px))
+            continue
+        curves_, _, dia = yarn_of(pl)
+        if not curves_:
+            curves.append(pl)
+            notes.append(ClothChoice(pl.path, curve_level, "no yarn curves to voxelize", yarn_pixels=px))
+            continue
+        size = _voxel_size(pl, np.concatenate([c.points for c in curves_]), dia, view, voxels_per_pixel, voxel_size)
+        others = [yarn_of(o) for o in placements if o is not pl and o.prim.HasAPI("FiberYarnAPI")]
+        cov = yarn_coverage(curves_, yarn, dia, size, source=pl.path, others=others)
+        excess = _excess(cov, size)
+        if excess <= VOLUME_OPACITY_BOUND:
             vols.append(pl)
-            notes.append(f"{pl.path}: volume (yarns {px:.2g} px wide, under {VOLUME_YARN_PIXELS:g})")
+            notes.append(ClothChoice(pl.path, "volume", f"yarns {px:.2g} px wide, under {VOLUME_YARN_PIXELS:g}; "
+                                     f"{size:.3g}-unit voxels make the cloth {100 * excess:.0f} % more opaque, "
+                                     f"within {100 * VOLUME_OPACITY_BOUND:.0f} % (coverage {cov.coverage:.2f})",
+                                     px, size, excess, cov.coverage))
         else:
             curves.append(pl)
-            level = "explicit fibers" if px * lod_scale >= 3 or lod_scale <= 0 else "yarn far field"
-            notes.append(f"{pl.path}: {level} (yarns {px:.2g} px wide)")
+            pred = (f"over half the cloth's width ({cov.tau.shape[0] * cov.texel:.3g} units): a blur of a few voxels"
+                    if math.isinf(excess) else f"{100 * excess:.0f} % more opaque")
+            notes.append(ClothChoice(pl.path, curve_level, f"yarns {px:.2g} px wide; not a volume: its "
+                                     f"{size:.3g}-unit voxels would spread the yarns over the gaps (coverage "
+                                     f"{cov.coverage:.2f}): {pred}, over the bound of "
+                                     f"{100 * VOLUME_OPACITY_BOUND:.0f} %; "
+                                     f"voxels of {cov.voxel_for_bias(size, VOLUME_OPACITY_BOUND):.3g} units "
+                                     f"resolve them",
+                                     px, size, excess, cov.coverage))
     return vols, curves, notes
 
 
@@ -140,28 +298,16 @@ def _voxel_size(pl: Any, fib_pts: np.ndarray, fiber_diameter: float, view: Camer
     return voxel_size_for_footprint(footprint, fiber_diameter=fiber_diameter, per_pixel=voxels_per_pixel)
 
 
-def _yarn_density_grid(pl: Any, stage: Usd.Stage, time: Usd.TimeCode, yarn: YarnParams, *, settings: BakeSettings,
-                       cache: TableCache | None, bake_missing: bool, progress: Callable[..., Any] | None,
-                       view: CameraView | None, voxels_per_pixel: float, voxel_size: float | None,
-                       budget_bytes: int, seed: int) -> tuple[VoxelGrid, FiberBank, float] | None:
-    """A yarn prim voxelized from its fiber density (:mod:`usdfiber.geometry.yarn_density`), with
-    its bank of slots (one per cross-section variant, the prim's dye and depth of shade) and
-    the table time; None when the yarns are wide enough in voxels to be expanded instead."""
-    try:
-        params = FiberParams.from_prim(pl.prim, time)
-    except FiberParamsError as exc:
-        raise TranslateError(str(exc)) from None
-    um = 1e-6 / UsdGeom.GetStageMetersPerUnit(stage)
-    dia = params.diameter * um
-    scale = axis_scales(np.asarray(pl.xform)[:3, :3])[1]
-    width = 2 * yarn.yarn_radius
-    try:
-        geom = curves_from_prim(pl.prim, time, pl.xform, default_width=width / scale if 0 < scale < math.inf else width)
-    except CurveError as exc:
-        raise TranslateError(str(exc)) from None
-    # Centre lines sampled twice per B-spline segment: the samples lie on the curve, far
-    # closer together than a voxel (a garment's centre line has ~20 segments per crossing).
-    curves = [YarnCurve(pts, rad / yarn.yarn_radius) for pts, rad in yarn_polylines(geom, 2)]
+def _yarn_density_grid(pl: Any, stage: Usd.Stage, time: Usd.TimeCode, yarn: YarnParams, curves: list[YarnCurve], *,
+                       settings: BakeSettings, cache: TableCache | None, bake_missing: bool,
+                       progress: Callable[..., Any] | None, view: CameraView | None, voxels_per_pixel: float,
+                       voxel_size: float | None, budget_bytes: int,
+                       seed: int) -> tuple[VoxelGrid, FiberBank, float] | None:
+    """A yarn prim (its centre lines ``curves``, :func:`_yarn_curves`) voxelized from its fiber
+    density (:mod:`usdfiber.geometry.yarn_density`), with its bank of slots (one per
+    cross-section variant, the prim's dye and depth of shade) and the table time; None when
+    the yarns are wide enough in voxels to be expanded instead."""
+    params, dia = _fiber_diameter(pl, stage, time)
     if not curves:
         return None
     pts = np.concatenate([c.points for c in curves])
@@ -203,6 +349,17 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
     left: list[Any] = []
     n_vox = n_faces = 0
     voxelize_s = 0.0
+    # Every yarn prim's centre lines first: each prim's homogenization is measured with the rest
+    # of the cloth.
+    cloth_yarns: dict[str, tuple[list[YarnCurve], YarnParams, float]] = {}
+    for pl in placements:
+        if pl.prim.HasAPI("FiberYarnAPI"):
+            try:
+                yp = YarnParams.from_prim(pl.prim, time)
+            except YarnError as exc:
+                raise TranslateError(str(exc)) from None
+            if yp.expand:
+                cloth_yarns[pl.path] = (_yarn_curves(pl, time, yp), yp, _fiber_diameter(pl, stage, time)[1])
     for k, pl in enumerate(placements):
         yarn = None
         if pl.prim.HasAPI("FiberYarnAPI"):
@@ -216,8 +373,10 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
             continue
         dense = None
         t_vox = _time.perf_counter()
+        yarn_curves: list[YarnCurve] = []
         if yarn is not None:
-            dense = _yarn_density_grid(pl, stage, time, yarn, settings=settings, cache=cache,
+            yarn_curves = cloth_yarns[pl.path][0]
+            dense = _yarn_density_grid(pl, stage, time, yarn, yarn_curves, settings=settings, cache=cache,
                                        bake_missing=bake_missing, progress=progress, view=view,
                                        voxels_per_pixel=voxels_per_pixel, voxel_size=voxel_size,
                                        budget_bytes=budget_bytes, seed=k)
@@ -245,6 +404,17 @@ def translate_volumes(mi: Any, placements: Sequence[Any], stage: Usd.Stage, time
                 raise TranslateError(str(exc)) from None
         voxelize_s += _time.perf_counter() - t_vox
         out.warnings.extend(grid.warnings)
+        if yarn_curves:
+            # The weave's gaps against the voxel (module docstring): never a silent bias. The
+            # other yarn prims voxelized with it are the rest of the cloth.
+            others = [cloth_yarns[o.path] for o in placements if o is not pl and o.path in cloth_yarns]
+            cov = yarn_coverage(yarn_curves, yarn, _fiber_diameter(pl, stage, time)[1], grid.voxel_size,
+                                source=pl.path, others=others)
+            msg = homogenization_warning(pl.path, cov, grid.voxel_size, 2 * yarn.yarn_radius,
+                                         box=(grid.origin, grid.upper), n_slots=len(bank.slots),
+                                         budget_bytes=budget_bytes)
+            if msg:
+                out.warnings.append(msg)
         cut = near_plane_warning(view, pl.path, grid.origin, grid.upper)
         if cut:
             out.warnings.append(cut)
