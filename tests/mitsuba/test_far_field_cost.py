@@ -33,7 +33,9 @@ from stats_util import FALSE_FAILURE, z_limit  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 FIBER_D = 12e-4    # 12 um in cm
-ST = YarnBakeSettings(resolution_deg=15, photons=4000, batches=4)
+# One fiber placement per far field: these tests are about tracing only what contributes and
+# recolouring, not the average over placements (tests/mitsuba/test_far_field_realizations.py).
+ST = YarnBakeSettings(resolution_deg=15, photons=4000, batches=4, realizations=1)
 
 
 def _small_yarn() -> YarnParams:
@@ -107,7 +109,7 @@ def test_one_trace_serves_every_colour(tmp_path, silk_render_table):
     from usdfiber.translators.mitsuba.yarn_far_field import YarnFarFieldCache
 
     cache = YarnFarFieldCache(TableCache(tmp_path))
-    st = YarnBakeSettings(resolution_deg=30, photons=400, batches=2)
+    st = YarnBakeSettings(resolution_deg=30, photons=400, batches=2, realizations=1)
     yp = _small_yarn()
     red = [FiberSlot(silk_render_table, (0.1, 2.0, 2.0))]
     blue = [FiberSlot(silk_render_table, (2.0, 2.0, 0.1))]
@@ -159,7 +161,7 @@ def test_out_of_view_yarn_is_not_traced(tmp_path):
     path = tmp_path / "two.usda"
     _two_yarn_stage(path)
     opts = SceneOptions(resolution=(16, 16), spp=1, bake=BakeSettings(resolution_deg=30, photons=1000, batches=2),
-                        yarn_bake=YarnBakeSettings(resolution_deg=30, photons=400, batches=2),
+                        yarn_bake=YarnBakeSettings(resolution_deg=30, photons=400, batches=2, realizations=1),
                         cache=TableCache(tmp_path / "cache"))
     tr = translate_stage(Usd.Stage.Open(str(path)), opts)
     rep = {f["prim"]: f for f in tr.fibers.far_fields}

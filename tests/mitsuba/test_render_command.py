@@ -23,7 +23,9 @@ from stage_util import add_camera
 
 FAST = ["--bake-resolution", "15", "--bake-photons", "4000"]
 FAST_SETTINGS = BakeSettings(resolution_deg=15, photons=4000, batches=4)
-FAST_YARN_SETTINGS = YarnBakeSettings(30, photons=600)
+# One fiber placement per far field: these tests are about the command and the level of detail, not
+# the far field's average over placements (tests/mitsuba/test_far_field_realizations.py).
+FAST_YARN_SETTINGS = YarnBakeSettings(30, photons=600, realizations=1)
 
 
 @pytest.fixture(autouse=True)

@@ -154,7 +154,7 @@ def test_dye_darkens_the_yarn_more_than_one_fiber(silk):
     """A dyed yarn is darker than one of its fibers (light meets several fibers before it
     leaves), and darker for more dye; red dye keeps red brightest."""
     yp = _small_yarn()
-    st = YarnBakeSettings(resolution_deg=15, photons=2000, batches=2)
+    st = YarnBakeSettings(resolution_deg=15, photons=2000, batches=2, realizations=1)  # one placement: a dye test
     light = (0.02, 0.2, 0.4)
     deep = tuple(4 * s for s in light)
     ff = bake_yarn_far_field(yp, FIBER_D, [FiberSlot(silk, light)], st)   # any colour: recoloured
@@ -169,7 +169,7 @@ def test_dye_darkens_the_yarn_more_than_one_fiber(silk):
 
 def test_cache_reuses_and_replaces_damaged_files(tmp_path, silk):
     yp = _small_yarn()
-    st = YarnBakeSettings(resolution_deg=30, photons=400, batches=2)
+    st = YarnBakeSettings(resolution_deg=30, photons=400, batches=2, realizations=1)  # one placement: a cache test
     cache = YarnFarFieldCache(TableCache(tmp_path))
     slots = [FiberSlot(silk, (0.1, 0.1, 0.1))]
     ff, traced = cache.get_or_bake(yp, FIBER_D, slots, st)
@@ -179,7 +179,7 @@ def test_cache_reuses_and_replaces_damaged_files(tmp_path, silk):
     np.testing.assert_array_equal(again.arrays["p"], ff.arrays["p"])
     # another colour is the same far field, recoloured; other absorption levels are another one
     assert cache.get_or_bake(yp, FIBER_D, [FiberSlot(silk, (0.2, 0.1, 0.1))], st, bake_missing=False)[0] is not None
-    other = YarnBakeSettings(resolution_deg=30, photons=400, batches=2, levels=(0.0, 1.0, 4.0))
+    other = YarnBakeSettings(resolution_deg=30, photons=400, batches=2, levels=(0.0, 1.0, 4.0), realizations=1)
     assert cache.get_or_bake(yp, FIBER_D, slots, other, bake_missing=False)[0] is None
     path = next((tmp_path / "yarns").glob("*.npz"))
     path.write_bytes(path.read_bytes()[:200])

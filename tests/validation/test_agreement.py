@@ -41,7 +41,7 @@ def options(tmp_path_factory) -> SceneOptions:
     cache = TableCache(tmp_path_factory.mktemp("agreement_tables"))
     return SceneOptions(resolution=(8, 8), spp=1, cache=cache,
                         bake=BakeSettings(resolution_deg=30, photons=200, batches=2),
-                        yarn_bake=YarnBakeSettings(resolution_deg=30, photons=200))
+                        yarn_bake=YarnBakeSettings(resolution_deg=30, photons=200, realizations=1))
 
 
 def test_corpus_is_large_and_described() -> None:
