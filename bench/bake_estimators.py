@@ -97,6 +97,30 @@ def direction_part(args, rec) -> list[dict]:
     return out
 
 
+def _plain_reference(trace_plain, seed0: int, M: int, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """The plain reference of ``M`` photons in 4 independent batches and its own squared error
+    (from their spread): ``trace_plain(n, seed)`` traces one batch."""
+    refs = [_p2(trace_plain(M // 4, seed0 + b)) for b in range(4)]
+    ref = np.mean(refs, axis=0)
+    return ref, float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+
+
+def _row(name: str, th: float, ph: float, N: int, M: int, e_ref2: float) -> dict:
+    return {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
+            "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+
+
+def _ratios_to_plain(row: dict, ks: list[int]) -> None:
+    """Variance, CPU and wall ratios of each K against plain (K0), and the gain at equal error."""
+    a = row["K0"]
+    for k in ks:
+        b = row[f"K{k}"]
+        row[f"var_ratio_K{k}"] = a["e"] ** 2 / b["e"] ** 2 if b["e"] > 0 else math.inf
+        row[f"cpu_ratio_K{k}"] = b["cpu"] / a["cpu"]
+        row[f"wall_ratio_K{k}"] = b["seconds"] / a["seconds"]
+        row[f"gain_K{k}"] = row[f"var_ratio_K{k}"] / row[f"cpu_ratio_K{k}"]
+
+
 def split_part(args, rec) -> list[dict]:
     from usdfiber.bake import tracer
 
@@ -113,9 +137,8 @@ def split_part(args, rec) -> list[dict]:
             tracer.trace(fs, 0.3, 0.2, 4096, seed=1, split=k, **kw)
         for j, (th, ph) in enumerate(dirs):
             t_i, p_i = math.radians(th), math.radians(ph)
-            refs = [_p2(tracer.trace(fs, t_i, p_i, M // 4, seed=30_000 + 10 * j + b, **kw)) for b in range(4)]
-            ref = np.mean(refs, axis=0)
-            e_ref2 = float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+            ref, e_ref2 = _plain_reference(lambda n, sd: tracer.trace(fs, t_i, p_i, n, seed=sd, **kw),
+                                           30_000 + 10 * j, M, w)
             runs: dict[int, list] = {k: [] for k in [0] + ks}
             for rep_ in range(args.repeats):
                 for k in runs:
@@ -124,19 +147,13 @@ def split_part(args, rec) -> list[dict]:
                     dt, dc = time.perf_counter() - t0, time.process_time() - c0
                     d = rel_l2(_p2(r), ref, w)
                     runs[k].append({"seconds": dt, "cpu": dc, "d": d, "e2": d * d - e_ref2})
-            row = {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
-                   "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+            row = _row(name, th, ph, N, M, e_ref2)
             for k, rs in runs.items():
                 row[f"K{k}"] = {"seconds": float(np.median([x["seconds"] for x in rs])),
                                 "cpu": float(np.median([x["cpu"] for x in rs])),
                                 "e": math.sqrt(max(float(np.mean([x["e2"] for x in rs])), 0.0)), "runs": rs}
             a = row["K0"]
-            for k in ks:
-                b = row[f"K{k}"]
-                row[f"var_ratio_K{k}"] = a["e"] ** 2 / b["e"] ** 2 if b["e"] > 0 else math.inf
-                row[f"cpu_ratio_K{k}"] = b["cpu"] / a["cpu"]
-                row[f"wall_ratio_K{k}"] = b["seconds"] / a["seconds"]
-                row[f"gain_K{k}"] = row[f"var_ratio_K{k}"] / row[f"cpu_ratio_K{k}"]
+            _ratios_to_plain(row, ks)
             print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['cpu']:.2f} s cpu; "
                   + "; ".join(f"K={k} {fmt_pct(row[f'K{k}']['e'])} var x{row[f'var_ratio_K{k}']:.2f} "
                               f"cpu x{row[f'cpu_ratio_K{k}']:.2f} gain {row[f'gain_K{k}']:.2f}" for k in ks), flush=True)
@@ -191,9 +208,7 @@ def expected_part(args, rec) -> list[dict]:
             run(k, 0.3, 0.2, 4096, 1)
         for j, (th, ph) in enumerate(dirs):
             t_i, p_i = math.radians(th), math.radians(ph)
-            refs = [_p2(run(0, t_i, p_i, M // 4, 50_000 + 10 * j + b)) for b in range(4)]
-            ref = np.mean(refs, axis=0)
-            e_ref2 = float(np.sum(w * np.var(refs, axis=0, ddof=1) / 4) / np.sum(w * ref ** 2))
+            ref, e_ref2 = _plain_reference(lambda n, sd: run(0, t_i, p_i, n, sd), 50_000 + 10 * j, M, w)
             runs: dict[int, list] = {k: [] for k in [0] + ks}
             for rep_ in range(args.repeats):
                 for k in runs:
@@ -206,19 +221,15 @@ def expected_part(args, rec) -> list[dict]:
                     dep = float(r.histogram[0, 0].sum()) if r.histogram is not None else 0.0
                     runs[k].append({"seconds": dt, "cpu_trace": dc, "cpu_bin": db, "cpu": dc + db, "d": d,
                                     "e2": d * d - e_ref2, "ev_fraction": dep / max(dep + float(r.exit_weights().sum()), 1e-300)})
-            row = {"fiber": name, "theta_i": th, "phi_i": ph, "photons": N, "ref_photons": M,
-                   "e_ref": math.sqrt(e_ref2), "load": list(np.round(np.array(__import__("os").getloadavg()), 2))}
+            row = _row(name, th, ph, N, M, e_ref2)
             for k, rs in runs.items():
                 row[f"K{k}"] = {c: float(np.median([x[c] for x in rs])) for c in ("seconds", "cpu", "cpu_trace", "cpu_bin")}
                 row[f"K{k}"].update({"e": math.sqrt(max(float(np.mean([x["e2"] for x in rs])), 0.0)),
                                      "ev_fraction": float(np.mean([x["ev_fraction"] for x in rs])), "runs": rs})
             a = row["K0"]
+            _ratios_to_plain(row, ks)
             for k in ks:
-                b = row[f"K{k}"]
-                row[f"var_ratio_K{k}"] = a["e"] ** 2 / b["e"] ** 2 if b["e"] > 0 else math.inf
-                row[f"cpu_ratio_K{k}"] = b["cpu"] / a["cpu"]
-                row[f"trace_ratio_K{k}"] = b["cpu_trace"] / a["cpu_trace"]
-                row[f"gain_K{k}"] = row[f"var_ratio_K{k}"] / row[f"cpu_ratio_K{k}"]
+                row[f"trace_ratio_K{k}"] = row[f"K{k}"]["cpu_trace"] / a["cpu_trace"]
             print(f"{name:10s} theta {th:4.0f} phi {ph:4.0f}: plain {fmt_pct(a['e'])} {a['cpu_trace']:.2f}+"
                   f"{a['cpu_bin']:.2f} s cpu; "
                   + "; ".join(f"K={k} {fmt_pct(row[f'K{k}']['e'])} var x{row[f'var_ratio_K{k}']:.2f} "

@@ -20,29 +20,12 @@ from usdfiber.bake.reciprocity import partner_bins
 from usdfiber.bake.sampling import (owen_scramble, scramble_seeds, sobol_points, sobol_unscrambled,
                                     stream_seed, to_unit_float)
 from usdfiber.bake.settings import BakeError, BakeSettings
-from usdfiber.bake.tracer import prepare, trace, trace_many
+from usdfiber.bake.tracer import trace, trace_many
 
+from estimator_scenes import scene
 from stats_util import FALSE_FAILURE, compare_blocks
 
 ETA = 1.55
-
-_SCENES: dict = {}
-
-
-def _star() -> profiles.Profile:
-    """Three deep lobes: much of the light leaving a concave side meets the fiber again."""
-    pts, nrm = profiles.fourier_loop(512, cos=(0.0, 0.0, 0.3), radius=5.0)
-    return profiles.Profile("star", loops=(pts,), normals=(nrm,))
-
-
-def scene(name: str):
-    if name not in _SCENES:
-        make = {"circle": lambda: profiles.circle(512, radius=5.0),
-                "cotton": lambda: profiles.builtin_profiles_um("cotton", 1)[0],
-                "star": _star}[name]
-        _SCENES[name] = prepare(make())
-    return _SCENES[name]
-
 
 @pytest.fixture(scope="module")
 def ellipse():

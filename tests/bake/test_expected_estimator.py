@@ -20,8 +20,10 @@ from usdfiber.bake.exact import azimuthal_distribution
 from usdfiber.bake.fiber_mesh import build_fiber_mesh, hull_edges
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError, BakeSettings
-from usdfiber.bake.tracer import ExitHistogram, prepare, trace, trace_many
+from usdfiber.bake.tracer import ExitHistogram, trace, trace_many
 
+from estimator_scenes import scene as shared_scene
+from estimator_scenes import star_profile
 from stats_util import FALSE_FAILURE, compare_blocks
 
 ETA = 1.55
@@ -29,23 +31,9 @@ SIGMA = 0.05           # 1/um: absorption across the 10 um fibers below, about 0
 GRID = Grid(6.0)
 HIST = ExitHistogram.for_grid(GRID, [SIGMA])
 
-_SCENES: dict = {}
-
-
-def _star() -> profiles.Profile:
-    """Three deep lobes: much of the light leaving a concave side meets the fiber again."""
-    pts, nrm = profiles.fourier_loop(512, cos=(0.0, 0.0, 0.3), radius=5.0)
-    return profiles.Profile("star", loops=(pts,), normals=(nrm,))
-
-
 def scene(name: str):
-    if name not in _SCENES:
-        make = {"circle": lambda: profiles.circle(512, radius=5.0),
-                "silk": lambda: profiles.builtin_profiles_um("silk", 1, diameter_um=10.0)[0],
-                "cotton": lambda: profiles.builtin_profiles_um("cotton", 1, diameter_um=10.0)[0],
-                "star": _star}[name]
-        _SCENES[name] = prepare(make())
-    return _SCENES[name]
+    """Built-in profiles at 10 um, the circle's diameter (estimator_scenes)."""
+    return shared_scene(name, None if name in ("circle", "star") else 10.0)
 
 
 def _densities(fs, theta, phi, beta, n, seeds, K, sigma=SIGMA):
@@ -63,8 +51,8 @@ def test_hull_edges_of_convex_and_concave_loops():
     # An arrow-head: the two edges into the notch at (0.5, 0.3) are not on the hull.
     notch = np.array([[0, 0], [0.5, 0.3], [1, 0], [0.5, 1]], float)
     assert hull_edges(notch).tolist() == [False, False, True, True]
-    m = build_fiber_mesh(_star())
-    star_hull = hull_edges(_star().loops[0])
+    m = build_fiber_mesh(star_profile())
+    star_hull = hull_edges(star_profile().loops[0])
     assert 0.2 < star_hull.mean() < 0.9
     # Per edge two triangles, both marked; only outer faces; every face of a circle.
     assert m.outer_hull.sum() == 2 * star_hull.sum() and not np.any(m.outer_hull & ~m.outer_faces)
