@@ -6,8 +6,9 @@ spp and image error against explicit fibers (Figure 7 swatch) or the far field (
                                         [--res 160x60] [--spp 2] [--passes 4] [--ref-passes 24]
                                         [--bricks 0,4,16] [--fine 2] --save IMAGES.npz > RUN.json
     python bench/volume_bench.py swatch-errors --inputs RUN.json,IMAGES.npz,... [--budgets 10,30,100]
-    python bench/volume_bench.py shirt-render [--yarns 500] [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 16]
-                                              [--explicit] [--voxels 0.13,0.065]
+    python bench/volume_bench.py shirt-render [--yarns 500|2500] [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 16]
+                                              [--explicit] [--voxels 0.13,0.065] [--auto] [--explicit-estimate]
+                                              [--budgets 3,10,30,100] [--save IMAGES.npz]
     python bench/volume_bench.py bricks [--res 80x30] [--spp 4] [--rounds 2] [--bricks 8,0]
     python bench/volume_bench.py shirt [--yarns 5000] [--voxel-mm 1.04]
     python bench/volume_bench.py far-field-cause [--yarns 60] [--variants sheer,sparse,warps,single]
@@ -36,12 +37,15 @@ error of all passes less the noise of both; the equal-time error at a CPU budget
 err(T / (CPU s per spp)) (:func:`equal_time`). Also the image mean and the mean per swatch.
 
 ``shirt-render``: a piece of bench/cloth_bench.py's shirt panel (Skala 360 plain weave, the
-panel's yarn and spacing; ``--yarns`` warps and as many wefts) at ``--res`` as the yarn far field
-(the reference, at ``--ref-passes``) and as a volume (voxels of ``--voxel-mm``, default the pixel
-footprint; ``--voxels`` a list of them). Explicit fibers do not fit the machine at the scale of
-the panel (bench/REPORT.md, "Garment scale"); ``--explicit`` adds them for small pieces, and
-then they are the reference. Per mode also the mean over the cloth only (``--cloth-box``) and
-the volume's homogenization warnings (the predicted excess opacity).
+panel's yarn and spacing; ``--yarns`` warps and as many wefts; 2500: the whole panel, one
+stage) at ``--res`` as the yarn far field (the reference, at ``--ref-passes``) and as a volume
+(voxels of ``--voxel-mm``, default the pixel footprint; ``--voxels`` a list of them). Explicit
+fibers do not fit the machine at the scale of the panel (bench/REPORT.md, "Garment scale";
+``--explicit-estimate`` counts their segments without translating); ``--explicit`` adds them
+for small pieces, and then they are the reference. Also the generation's time and peak memory,
+per mode the peak memory, the mean over the cloth only (``--cloth-box``, and the cloth's
+projected rectangle), the volume's homogenization warnings (the predicted excess opacity), the
+equal-time errors (``--budgets``) and, with ``--auto``, what ``--cloth auto`` chooses.
 
 ``bricks``: the speed of bricks: the Figure 7 volume (the 320 x 120 view's 0.0713 mm voxels)
 in bricks of ``--bricks`` voxels and as one medium (0), rendered alternately at a low
@@ -50,8 +54,9 @@ collisions per ray length (:func:`usdfiber.translators.mitsuba.volume.medium.col
 
 ``shirt``: yarns of bench/cloth_bench.py's shirt panel (2,500 x 2,500 Skala 360, 66.5 cm)
 voxelized from the yarn density at the footprint of a 640-pixel view of the whole panel
-(1.04 mm): time, pieces, grid bytes. ``--yarns N`` voxelizes N full-length warps and
-extrapolates linearly to the panel's 5,000 yarns (the cost is per yarn length).
+(1.04 mm): time, pieces, grid bytes. ``--yarns N`` voxelizes N full-length warps (above
+2,500: the whole panel, warps then wefts) and extrapolates linearly to the panel's 5,000
+yarns (the cost is per yarn length).
 
 ``far-field-cause``: the yarn far field against explicit fibers on the sheer weave and on
 variants without neighbours or crossings (:func:`part_far_field_cause`).
@@ -340,12 +345,12 @@ def part_shirt(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 0.001)
-    # The panel's warps at full length (66.5 cm across 2,500 wefts); the whole panel's 50 M
-    # control points exceed the generator's memory budget on 24 GiB, and every yarn costs the same.
+    # Up to 2,500 yarns: the panel's warps at full length (66.5 cm across 2,500 wefts); more:
+    # the whole panel (50 M control points, 0.84 GiB), its wefts after its warps.
     cloth.plain_weave(stage, "/Shirt", warps=min(args.yarns, 2500), wefts=2500, yarn="Skala 360",
                       dye="disperseBlue", depth_of_shade=1.0)
     t_stage = time.perf_counter() - t0
-    prims = [stage.GetPrimAtPath("/Shirt/Warp")]
+    prims = [stage.GetPrimAtPath("/Shirt/Warp")] + ([stage.GetPrimAtPath("/Shirt/Weft")] if args.yarns > 2500 else [])
     params = YarnParams.from_prim(prims[0])
     fiber = FiberParams.from_prim(prims[0], Usd.TimeCode.Default())
     dia = fiber.diameter * 1e-3                      # um -> mm
@@ -384,16 +389,62 @@ def part_shirt(args: argparse.Namespace) -> dict[str, Any]:
             "fiber_count_per_yarn": params.fiber_count}
 
 
+def _reset_peak_memory() -> bool:
+    """Start a new peak of this process's resident memory (``VmHWM``; Linux: /proc/self/clear_refs)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _memory_mib() -> dict[str, float | None]:
+    from bench_common import proc_status_mib
+
+    return {"rss_mib": proc_status_mib("VmRSS"), "peak_mib": proc_status_mib("VmHWM")}
+
+
+def auto_choice(stage: Any, camera: str, w: int, h: int) -> dict[str, Any]:
+    """What ``--cloth auto`` makes of every yarn prim under ``camera`` at w x h, and why (the
+    lines of ``ClothChoice``), without translating: the choice alone, with its CPU seconds."""
+    from pxr import Usd, UsdGeom
+
+    from usdfiber.translators.mitsuba.fibers import fiber_prim
+    from usdfiber.translators.mitsuba.lod import camera_view
+    from usdfiber.translators.mitsuba.stage_walk import walk
+    from usdfiber.translators.mitsuba.volume.scene import split_cloth
+
+    tc = Usd.TimeCode.Default()
+    c0 = time.process_time()
+    pls = [pl for pl in walk(stage, tc, ("default", "render"), (UsdGeom.Gprim,)) if fiber_prim(pl.prim)]
+    vols, curves, choices = split_cloth(pls, "auto", camera_view(stage.GetPrimAtPath(camera), tc, w, h), tc)
+    return {"volume_prims": len(vols), "curve_prims": len(curves), "choices": [str(c) for c in choices],
+            "cpu_s": time.process_time() - c0}
+
+
+#: Peak bytes per fiber segment of an explicit-fiber translation (bench/REPORT.md, "Garment
+#: scale": 0.86-0.89 KB measured on stages that translated).
+EXPLICIT_BYTES_PER_SEGMENT = 870.0
+
+
 def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
-    """A square piece of the shirt panel (``--yarns`` warps and as many wefts of Skala 360, the
-    panel's yarn and density; bench/cloth_bench.py's stage: grey card, camera 30 degrees from the
-    normal framing it whole) at ``--res``: the yarn far field (``--cloth fibers``, every yarn
-    below a pixel) with ``--ref-passes`` more passes as the reference, and the volume from the
-    yarn density. Per mode: translate and voxelization time, grid bytes, CPU seconds per spp,
-    and the errors of :func:`mode_errors` against the far field."""
+    """A square piece of the shirt panel, or the whole panel (``--yarns 2500``: 2,500 warps and
+    2,500 wefts of Skala 360, the panel's yarn and density; bench/cloth_bench.py's stage: grey
+    card, camera 30 degrees from the normal framing it whole) at ``--res``: the yarn far field
+    (``--cloth fibers``, every yarn below a pixel) with ``--ref-passes`` more passes as the
+    reference, and the volume from the yarn density. Generation: CPU and wall seconds, the
+    process's peak memory over its memory before, against ``cloth.memory_estimate``. Per mode:
+    translate and voxelization time, grid bytes, peak memory, CPU seconds per spp, the errors
+    of :func:`mode_errors` against the reference (the whole image, ``--cloth-box`` and the
+    cloth's projected rectangle) and the equal-time errors at ``--budgets`` CPU seconds.
+    ``--auto``: what ``--cloth auto`` chooses and why; ``--explicit-estimate``: the explicit
+    fibers' segments at lod_scale 0 and 1 (bench/cloth_bench.py's ``estimate_weave``) and their
+    memory at :data:`EXPLICIT_BYTES_PER_SEGMENT`."""
     import usdfiber  # noqa: F401  (registers the schemas first)
 
-    from cloth_bench import build_stage
+    from cloth_bench import build_stage, cloth_mask, estimate_weave
+    from usdfiber import cloth
     from usdfiber.backend import mitsuba
     from usdfiber.bake.cache import TableCache
     from usdfiber.bake.settings import BakeSettings
@@ -404,11 +455,35 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
     w, h = (int(v) for v in args.res.split("x"))
     spec = {"kind": "weave", "yarn": "Skala 360", "warps": args.yarns, "wefts": args.yarns, "res": [w, h],
             "cameras": {"whole": 1.0}}
+    n = args.yarns
+    prim_points = [n * (4 * n + 3), n * (4 * n + 3)]
+    before = _memory_mib()
+    peak_reset = _reset_peak_memory()
     c0, t0 = time.process_time(), time.perf_counter()
     stage, info = build_stage(spec)
+    after = _memory_mib()
     out: dict[str, Any] = {"spec": spec, "cloth_size_mm": info["cloth_size_mm"], "stage_s": time.perf_counter() - t0,
                            "stage_cpu_s": time.process_time() - c0, "spp_per_pass": args.spp, "passes": args.passes,
-                           "reference_passes": args.ref_passes, "modes": {}}
+                           "reference_passes": args.ref_passes, "modes": {},
+                           "generation": {"control_points": sum(prim_points),
+                                          "memory_estimate_mib": cloth.memory_estimate(prim_points) / 2**20,
+                                          "rss_before_mib": before["rss_mib"], "rss_after_mib": after["rss_mib"],
+                                          "peak_over_before_mib": (after["peak_mib"] - before["rss_mib"])
+                                          if peak_reset else None},
+                           "yarn_px_at_centre": info["cameras"]["whole"]["yarn_px_at_centre"],
+                           "mm_per_px_at_centre": info["cameras"]["whole"]["mm_per_px_at_centre"]}
+    print("generation", json.dumps(out["generation"], default=float), out["stage_s"], file=sys.stderr, flush=True)
+    if args.auto:
+        out["auto"] = auto_choice(stage, "/Cams/whole", w, h)
+        print("auto", json.dumps(out["auto"], default=float), file=sys.stderr, flush=True)
+    if args.explicit_estimate:
+        c1 = time.process_time()
+        est = estimate_weave(spec, [0.0, 1.0])
+        out["explicit_estimate"] = {
+            "lod": est["lod"], "per_yarn_full": est["per_yarn_full"], "cpu_s": time.process_time() - c1,
+            "bytes_per_segment": EXPLICIT_BYTES_PER_SEGMENT,
+            "gib": {k: v["segments"] * EXPLICIT_BYTES_PER_SEGMENT / 2**30 for k, v in est["lod"].items()}}
+        print("explicit estimate", json.dumps(out["explicit_estimate"], default=float), file=sys.stderr, flush=True)
     bake = BakeSettings(resolution_deg=15, photons=5000, batches=2)
     cache = TableCache(os.environ.get("USDFIBER_CACHE_DIR") or None)
     images: dict[str, np.ndarray] = {}
@@ -420,11 +495,14 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
         modes.append(("volume" if v is None else f"volume, {v:g} mm", dict(cloth="volume", voxel_size=v)))
     reference = "fibers" if args.explicit else "far field"
     for mode, kw in modes:
+        mem0 = _memory_mib()
+        _reset_peak_memory()
         tr, imgs, rec = time_mode(mi, stage, SceneOptions(resolution=(w, h), spp=args.spp, bake=bake, cache=cache,
                                                           camera="/Cams/whole", **kw), args.spp, args.passes)
         images[mode] = imgs
         rec.update(counts=dict(tr.counts), warnings=list(tr.warnings)[:8],
-                   homogenization=[w for w in tr.warnings if "over the gaps" in w])
+                   homogenization=[w for w in tr.warnings if "over the gaps" in w],
+                   rss_before_mib=mem0["rss_mib"], peak_mib=_memory_mib()["peak_mib"])
         if mode == reference:
             images["reference"], rcpu, _ = render_passes(mi, tr.scene, args.spp, args.ref_passes, 1000)
             out["reference_cpu_s"] = float(np.sum(rcpu))
@@ -432,7 +510,9 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
         print(mode, json.dumps(rec, default=float), file=sys.stderr, flush=True)
         del tr
     r0, r1, c0_, c1_ = (int(v) for v in args.cloth_box.split(","))
-    ref_cloth = images["reference"].mean(axis=0)[r0:r1, c0_:c1_]
+    mask = cloth_mask(stage, "/Cams/whole", info["cloth_lo"], info["cloth_hi"], w, h)
+    ref = images["reference"].mean(axis=0)
+    ref_cloth = ref[r0:r1, c0_:c1_]
     for mode, rec in out["modes"].items():
         rec["errors"] = mode_errors(images[mode], images["reference"], args.spp, rec["cpu_s_per_spp"])
         # The cloth only (--cloth-box rows, columns): the mean and per channel against the reference's.
@@ -441,8 +521,16 @@ def part_shirt_render(args: argparse.Namespace) -> dict[str, Any]:
         rec["cloth_mean_rel"] = float(cl.mean() / ref_cloth.mean() - 1.0)
         rec["cloth_mean_rel_se"] = float(np.std(per_pass, ddof=1) / np.sqrt(len(per_pass)) / ref_cloth.mean())
         rec["cloth_rgb_rel"] = [float(cl[..., k].mean() / ref_cloth[..., k].mean() - 1.0) for k in range(3)]
+        # The cloth's projected rectangle (every pixel of it).
+        img = images[mode].mean(axis=0)
+        per_pass = np.array([p[mask].mean() for p in images[mode]])
+        rec["cloth_rect_mean_rel"] = float(img[mask].mean() / ref[mask].mean() - 1.0)
+        rec["cloth_rect_mean_rel_se"] = float(np.std(per_pass, ddof=1) / np.sqrt(len(per_pass)) / ref[mask].mean())
+    out["equal_time_cpu_s"] = equal_time({m: r["errors"] for m, r in out["modes"].items()},
+                                         [float(t) for t in args.budgets.split(",")])
     out["reference"] = reference
     out["cloth_box_rows_cols"] = [r0, r1, c0_, c1_]
+    out["cloth_rect_pixels"] = int(mask.sum())
     if args.save:
         np.savez_compressed(args.save, **images)
     return out
@@ -554,7 +642,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fine", default="2", help="swatch: other voxels per pixel footprint")
     ap.add_argument("--save", default="", help="swatch, shirt-render: save the images (.npz)")
     ap.add_argument("--inputs", default="", help="swatch-errors: result.json,images.npz,... of swatch runs")
-    ap.add_argument("--budgets", default="10,30,100", help="swatch-errors: CPU seconds for the equal-time errors")
+    ap.add_argument("--budgets", default="10,30,100",
+                    help="swatch-errors, shirt-render: CPU seconds for the equal-time errors")
+    ap.add_argument("--auto", action="store_true", help="shirt-render: also what --cloth auto chooses, and why")
+    ap.add_argument("--explicit-estimate", action="store_true",
+                    help="shirt-render: the explicit fibers' segments and memory, estimated without translating")
     ap.add_argument("--yarns", type=int, default=5000, help="shirt: yarns; shirt-render: warps = wefts of the piece")
     ap.add_argument("--voxel-mm", type=float, default=None,
                     help="voxel edge, mm (shirt: 1.04, the 640-pixel view's footprint; "

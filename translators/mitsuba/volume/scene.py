@@ -50,6 +50,7 @@ from usdfiber.geometry.curves import CurveError, axis_scales, curves_from_prim
 from usdfiber.geometry.voxelize import (DEFAULT_BUDGET_BYTES, VoxelGrid, VoxelizeError, grid_bytes,
                                         polylines_from_segments, voxel_size_for_footprint, voxelize_fibers)
 from usdfiber.geometry.yarn_density import CoverageMap, YarnCurve, coverage_map, voxelize_yarns
+from usdfiber.memory_budget import format_bytes
 from usdfiber.spec.fiber import FiberParams, FiberParamsError
 from usdfiber.spec.yarn import YarnError, YarnParams
 
@@ -184,8 +185,8 @@ def homogenization_warning(path: str, cov: CoverageMap, voxel: float, yarn_diame
         ext = np.asarray(box[1], np.float64) - np.asarray(box[0], np.float64)
         shape = tuple(int(max(1, math.ceil(e / need))) for e in ext)
         nbytes = grid_bytes(shape, n_slots)          # type: ignore[arg-type]
-        mem = (f", a grid of {nbytes / 2**20:.0f} MiB, " + ("within" if nbytes <= budget_bytes else "over")
-               + f" the budget of {budget_bytes / 2**20:.0f} MiB")
+        mem = (f", a grid of {format_bytes(nbytes)}, " + ("within" if nbytes <= budget_bytes else "over")
+               + f" the budget of {format_bytes(budget_bytes)}")
     what = "more than" if math.isinf(excess) else "about"
     pct = f"{100 * bound:.0f} %" if math.isinf(excess) else f"{100 * excess:.0f} %"
     return (f"{path}: {voxel:.3g}-unit voxels spread the yarns ({yarn_diameter:.3g} units wide, coverage "
