@@ -165,21 +165,10 @@ def _bin_levels(r, levels: np.ndarray) -> np.ndarray:
     """What a bake does with a traced batch (``DirectionStatistics.add``): weight and weight x L
     per 2 degree bin at every absorption level; returns p at zero absorption per steradian."""
     from usdfiber.bake.binning import DEFAULT_GRID
+    from usdfiber.bake.statistics import level_histograms
 
     g = DEFAULT_GRID
-    nb = g.n_theta_o * g.n_phi_o
-    idx = g.bin_index(r.directions)
-    L = r.path_length.astype(np.float64)
-    w0 = r.exit_weights()
-    h = np.zeros((len(levels), nb))
-    gl = np.zeros((len(levels), nb))
-    for k, s in enumerate(levels):
-        w = w0 * np.exp(-s * L) if s > 0 else w0
-        h[k] = np.bincount(idx, weights=w, minlength=nb)
-        gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
-    if r.histogram is not None:
-        h += r.histogram[:, 0]
-        gl += r.histogram[:, 1]
+    h, _ = level_histograms(r, g, levels)
     return (h[0] / max(r.n_hit, 1)).reshape(g.n_theta_o, g.n_phi_o) / solid_angles()
 
 

@@ -30,7 +30,7 @@ import numpy as np
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeSettings
 
-__all__ = ["BakeContext", "DirectionStatistics", "mirror_phi"]
+__all__ = ["BakeContext", "DirectionStatistics", "level_histograms", "mirror_phi"]
 
 
 def mirror_phi(a: np.ndarray) -> np.ndarray:
@@ -38,6 +38,31 @@ def mirror_phi(a: np.ndarray) -> np.ndarray:
     n = a.shape[-1]
     idx = (-np.arange(n)) % n
     return 0.5 * (a + a[..., idx])
+
+
+def level_histograms(r: Any, grid: Grid, levels_um: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Summed exit weight and weight x L per outgoing bin of ``grid`` at every absorption level
+    (``exp(-s_k L)``; rows and the tracer's expected-value histogram): two (levels, bins) arrays."""
+    nb = grid.n_theta_o * grid.n_phi_o
+    idx = grid.bin_index(r.directions)
+    L = r.path_length.astype(np.float64)
+    # Exit weights at zero absorption (0 for cut photons; fractional with splitting, where
+    # one photon leaves several exits: its batch still is one independent sample).
+    w0 = r.exit_weights()
+    h = np.zeros((len(levels_um), nb))
+    gl = np.zeros((len(levels_um), nb))
+    for k, s in enumerate(levels_um):
+        w = w0 * np.exp(-s * L) if s > 0 else w0
+        h[k] = np.bincount(idx, weights=w, minlength=nb)
+        gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+    if getattr(r, "histogram", None) is not None:
+        # Exits deposited as expectations, already binned in the tracer at these levels.
+        hb = r.histogram_bins
+        if hb.n_bins != nb or not np.allclose(hb.levels, levels_um, rtol=1e-6, atol=0.0):
+            raise ValueError("the tracer's expected-value histogram has other bins or levels than the table")
+        h += r.histogram[:, 0]
+        gl += r.histogram[:, 1]
+    return h, gl
 
 
 @dataclass
@@ -108,25 +133,8 @@ class DirectionStatistics:
     def add(self, r: Any, th_b: float, ph_b: float) -> None:
         """Bin one traced batch at every absorption level."""
         ctx = self.ctx
-        g, nb, K = ctx.grid, self.nb, len(ctx.levels_um)
-        idx = g.bin_index(r.directions)
-        L = r.path_length.astype(np.float64)
-        # Exit weights at zero absorption (0 for cut photons; fractional with splitting, where
-        # one photon leaves several exits: its batch still is one independent sample).
-        w0 = r.exit_weights()
-        h = np.zeros((K, nb))
-        gl = np.zeros((K, nb))
-        for k, s in enumerate(ctx.levels_um):
-            w = w0 * np.exp(-s * L) if s > 0 else w0
-            h[k] = np.bincount(idx, weights=w, minlength=nb)
-            gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
-        if getattr(r, "histogram", None) is not None:
-            # Exits deposited as expectations, already binned in the tracer at these levels.
-            hb = r.histogram_bins
-            if hb.n_bins != nb or not np.allclose(hb.levels, ctx.levels_um, rtol=1e-6, atol=0.0):
-                raise ValueError("the tracer's expected-value histogram has other bins or levels than the table")
-            h += r.histogram[:, 0]
-            gl += r.histogram[:, 1]
+        g = ctx.grid
+        h, gl = level_histograms(r, g, ctx.levels_um)
         if ctx.cuticle is None:
             norm = float(r.n_hit)
         else:
