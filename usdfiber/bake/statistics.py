@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from usdfiber.bake.binning import level_sums
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeSettings
 
@@ -43,22 +44,13 @@ def mirror_phi(a: np.ndarray) -> np.ndarray:
 def level_histograms(r: Any, grid: Grid, levels_um: Any) -> tuple[np.ndarray, np.ndarray]:
     """Summed exit weight and weight x L per outgoing bin of ``grid`` at every absorption level
     (``exp(-s_k L)``; rows and the tracer's expected-value histogram): two (levels, bins) arrays."""
-    nb = grid.n_theta_o * grid.n_phi_o
-    idx = grid.bin_index(r.directions)
-    L = r.path_length.astype(np.float64)
-    # Exit weights at zero absorption (0 for cut photons; fractional with splitting, where
-    # one photon leaves several exits: its batch still is one independent sample).
-    w0 = r.exit_weights()
-    h = np.zeros((len(levels_um), nb))
-    gl = np.zeros((len(levels_um), nb))
-    for k, s in enumerate(levels_um):
-        w = w0 * np.exp(-s * L) if s > 0 else w0
-        h[k] = np.bincount(idx, weights=w, minlength=nb)
-        gl[k] = np.bincount(idx, weights=w * L, minlength=nb)
+    # Exit weights at zero absorption (cut photons carry none; fractional with splitting,
+    # where one photon leaves several exits: its batch still is one independent sample).
+    h, gl = level_sums(r.directions, r.path_length, getattr(r, "weight", None), r.cut, grid, levels_um)
     if getattr(r, "histogram", None) is not None:
         # Exits deposited as expectations, already binned in the tracer at these levels.
         hb = r.histogram_bins
-        if hb.n_bins != nb or not np.allclose(hb.levels, levels_um, rtol=1e-6, atol=0.0):
+        if hb.n_bins != h.shape[1] or not np.allclose(hb.levels, levels_um, rtol=1e-6, atol=0.0):
             raise ValueError("the tracer's expected-value histogram has other bins or levels than the table")
         h += r.histogram[:, 0]
         gl += r.histogram[:, 1]

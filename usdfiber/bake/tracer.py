@@ -228,6 +228,14 @@ _EV_LANES = 1 << 18
 #: Expected-value estimator: events queued before their normals are evaluated (18 fields of 4
 #: bytes each: 302 MB), or one phase's room if larger (at most _EV_LANES x 8, fewer events).
 _EV_QUEUE = EXPECTED_QUEUE_BYTES // 72
+#: The tail of a launch: once at most this many photons are still in flight (rough fibers, no
+#: splitting or expected values), phases last _TAIL_STEPS iterations and a microfacet normal
+#: seen from below the macro surface is drawn inside the loop. Before, every phase drew those
+#: normals between phases, so a photon in a long grazing walk (one such normal per event) took a
+#: phase per event: hundreds of phases, each recorded and launched anew, for one photon
+#: (bench/REPORT.md, "throughput"). Each photon's numbers and arithmetic are the same.
+_TAIL_LANES = 256
+_TAIL_STEPS = 64
 #: Expected-value estimator at a smooth boundary: a photon whose weight falls below this plays
 #: Russian roulette (survives with probability weight / _RR_WEIGHT, at that weight).
 _RR_WEIGHT = 0.25
@@ -407,7 +415,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     ``hist_first`` = b0) is (n, levels, 2, bins) float64, the summed weight and weight x L. The loop runs in phases of ``phase_steps`` iterations; between
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
-    the macro surface are drawn by the exact float64 inversion on just those lanes. Directions
+    the macro surface are drawn by the exact float64 inversion on just those lanes. Once at
+    most ``_TAIL_LANES`` photons are left (rough fibers, no splitting or expected values),
+    phases last ``_TAIL_STEPS`` iterations and those normals are drawn in the loop instead,
+    with the same inputs and arithmetic: a photon's path does not depend on the phases. Directions
     and seeds are data, not literals, so one compiled kernel serves every direction and batch,
     and many directions share each phase's fixed cost.
     """
@@ -719,11 +730,15 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["w"] = dr.select(elig, dr.select(ended, 0.0, w / dr.maximum(q, 1e-30)), s["w"])
         return V3(dr.select(inside, wo_r, wo_t)), inside, ended
 
+    #: Tail phases (see _TAIL_LANES): a lane that needs a normal seen from below draws it at
+    #: the start of its next iteration, where it would otherwise resume after the phase.
+    tail = [False]
+
     def cond(s: dict) -> Any:
         c = s["active"] & (s["steps"] < s_lim)
         if split_walks:
             c = c & ~s["need_s"]
-        return c & ~s["need_m"] if rough else c
+        return c & ~s["need_m"] if rough and not tail[0] else c
 
     def body(s: dict) -> tuple[dict]:
         s = dict(s)
@@ -733,6 +748,14 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         # 1. Walks in progress: does the photon leave the microsurface now? (A walk resuming with
         #    a normal drawn between phases already did this step.)
         if rough:
+            if tail[0]:
+                # The normal seen from below, as between phases (same inputs, same function).
+                below_m = s["need_m"]
+                _, _, wi_m = local_wi(s)
+                m_below = _vndf_below(mi, dr, wi_m, s["mq"].x, s["mq"].y, alpha_o)
+                s["mq"] = dr.select(below_m, m_below, s["mq"])
+                s["has_m"] = s["has_m"] | below_m
+                s["need_m"] = s["need_m"] & ~below_m
             test = s["walking"] & ~s["has_m"]
             frame, sg, wi = local_wi(s)
             leave, hn = _height_step(dr, F, -wi, s["h"] * sg, rng.next_float32(), alpha_o)
@@ -1059,7 +1082,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     deposits: dict[str, list[np.ndarray]] = {k: [] for k in ("lane", "dx", "dy", "dz", "L", "w", "bounces")}
     limit = 0
     while True:
-        limit += int(phase_steps)
+        limit += _TAIL_STEPS if tail[0] else int(phase_steps)
         s_lim = dr.opaque(U, limit)
         if ev and rough:
             # A lane queues at most one event per iteration: room for every iteration left to it.
@@ -1115,6 +1138,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         act = st["active"]
         n_act = int(dr.count(act)[0])
         size = dr.width(act)
+        tail[0] = tail[0] or (rough and mode == "symbolic" and not split and not ev and n_act <= _TAIL_LANES)
         if n_act == 0 or n_act < size // 2:
             # Write every lane's current outcome (finished lanes are final), then keep the rest.
             dr.scatter(out_d, st["d"], st["idx"])
@@ -1314,17 +1338,22 @@ def trace_many(
     a = 0
     while a < total:
         b = min(a + lanes, total, int(starts[min(nd, int(np.searchsorted(starts, a, side="right") - 1) + span)]))
-        lane = np.arange(a, b, dtype=np.int64)
-        beam = (np.searchsorted(starts, lane, side="right") - 1).astype(np.uint32)
-        launch = _Launch(beams32, beam, (lane - starts[beam]).astype(np.uint64), mixes[beam], scramble)
+        # Lanes a .. b - 1: the photons of each direction they cover, in order.
+        j0 = int(np.searchsorted(starts, a, side="right") - 1)
+        j1 = int(np.searchsorted(starts, b, side="left"))
+        per = np.minimum(starts[j0 + 1:j1 + 1], b) - np.maximum(starts[j0:j1], a)
+        beam = np.repeat(np.arange(j0, j1, dtype=np.uint32), per)
+        photon = (np.arange(a, b, dtype=np.int64) - starts[beam]).astype(np.uint64)
+        launch = _Launch(beams32, beam, photon, mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
                            max_steps=int(max_steps), mode=mode, split=int(split), expected=expected,
                            histogram=histogram)
         a = b
         hit = out["hit_any"]
-        n_hit += np.bincount(beam, weights=hit, minlength=nd).astype(np.int64)
-        n_leaks += np.bincount(beam, weights=out["leaks"], minlength=nd).astype(np.int64)
-        n_forced += np.bincount(beam, weights=out["forced"], minlength=nd).astype(np.int64)
+        n_hit += np.bincount(beam[hit], minlength=nd)
+        for total_k, key in ((n_leaks, "leaks"), (n_forced, "forced")):
+            nz = np.flatnonzero(out[key])      # rare events: count them where they happened
+            total_k += np.bincount(beam[nz], weights=out[key][nz], minlength=nd).astype(np.int64)
         if expected:
             f0 = int(out["hist_first"])
             hists[f0:f0 + len(out["hist"])] += out["hist"]
@@ -1338,7 +1367,8 @@ def trace_many(
         kept["L"].append(out["L"][hit])
         kept["cut"].append(out["cut"][hit])
         kept["bounces"].append(out["bounces"][hit])
-        kept["w"].append(out["w"][hit] if (split or expected) else np.ones(int(hit.sum()), np.float32))
+        if split or expected:
+            kept["w"].append(out["w"][hit])
         if split:
             dp = out["deposits"]
             kept["beam"].append(beam[dp["lane"]])
@@ -1349,21 +1379,21 @@ def trace_many(
             kept["w"].append(dp["w"])
     dr.sync_thread()
     seconds = time.perf_counter() - t0
-    cat = {k: np.concatenate(v) for k, v in kept.items()}
+    cat = {k: (v[0] if len(v) == 1 else np.concatenate(v)) for k, v in kept.items() if v}
     if split:
         # Deposits follow each batch's photons: bring each direction's rows together.
         order = np.argsort(cat["beam"], kind="stable")
         cat = {k: v[order] for k, v in cat.items()}
     # Lanes are in direction order, so each direction's photons are one contiguous run.
-    cuts = np.searchsorted(cat["beam"], np.arange(nd + 1), side="left")
+    cuts = np.searchsorted(cat["beam"], np.arange(nd + 1, dtype=cat["beam"].dtype), side="left")
     results = []
     for j, (th, ph) in enumerate(dirs):
         r = slice(cuts[j], cuts[j + 1])
         results.append(TraceResult(
             directions=np.ascontiguousarray(cat["d"][r], dtype=np.float32),
-            path_length=cat["L"][r].astype(np.float32),
-            cut=cat["cut"][r].astype(bool),
-            bounces=cat["bounces"][r].astype(np.uint32),
+            path_length=cat["L"][r].astype(np.float32, copy=False),
+            cut=cat["cut"][r].astype(bool, copy=False),
+            bounces=cat["bounces"][r].astype(np.uint32, copy=False),
             n_launched=int(counts[j]),
             n_hit=int(n_hit[j]),
             beam_width=float(widths[j, 0]),
@@ -1374,7 +1404,7 @@ def trace_many(
             beta_deg=float(beta_deg),
             seconds=seconds * float(counts[j]) / total,
             extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j])},
-            weight=cat["w"][r].astype(np.float32) if (split or expected) else None,
+            weight=cat["w"][r].astype(np.float32, copy=False) if (split or expected) else None,
             histogram=hists[j] if expected else None,
             histogram_bins=histogram if expected else None,
         ))
