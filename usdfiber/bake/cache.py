@@ -30,6 +30,22 @@ used. An interrupted bake keeps its finished directions in ``partial/<key>/``
 (:mod:`usdfiber.bake.chunks`); the next bake of the key resumes from them and removes the
 directory when the table is written.
 
+Compressed entries: a table may be kept in the compact layout of
+:mod:`usdfiber.bake.compression` (``usdfiber bake --compress [BOUND]`` compresses each table
+before it is stored, and tables it finds uncompressed in place; ``usdfiber table compress
+--cache`` compresses a whole cache in place; :meth:`TableCache.compress_entry`). It is kept
+under the same key, in the same file, and served exactly as the uncompressed table: the key
+says what a table describes (the fiber physics, the bake's quality, the layout the bake
+produced), while the compression is how that same table is stored, like the float16 rounding of
+the levels layout: a lossy encoding whose error is bounded and recorded in the header
+(``compression``: codec, bound, worst error), checked by the writer against the uncompressed
+table at every direction. Putting the bound in the key would make a render's request (which
+knows nothing of storage) miss the compressed table and bake the same photons again. A
+compressed file is read through the same verified loader: its checksums, its layout and codec
+frames against its header, and its ``cache_key``; a half-written or mismatched one is reported,
+deleted and baked again, never used. A table that cannot be kept within the bound is stored
+uncompressed, with a warning (its photons are not thrown away).
+
 Every kind of file kept under a cache root (tables here, yarn far fields in the Mitsuba
 bridge) is read through :meth:`TableCache.load_verified` and made through
 :func:`load_or_make`: look without the lock, then under the key's lock look again and make
@@ -68,7 +84,8 @@ T = TypeVar("T")
 
 
 class TableCacheWarning(UserWarning):
-    """A cached table that could not be used (it is baked again)."""
+    """A cached table that could not be used (it is baked again), or a table that could not be
+    stored compressed (it is stored uncompressed)."""
 
 
 class TableCacheError(BakeError):
@@ -268,6 +285,24 @@ class TableCache:
         """Whether a table file exists for ``key`` (it is verified when loaded)."""
         return self.table_path(key).exists()
 
+    def compress_entry(self, key: str, bound: float) -> BcsdfTable | None:
+        """The cached table of ``key`` in the compressed layout (:mod:`usdfiber.bake.compression`,
+        every direction within ``bound`` relative L2 of p), compressed in place under the key's
+        lock when it is not already (one compressed at any bound is left as it is). None when
+        the key has no usable table. Raises CompressionError (the file is then left as it was)."""
+        if not self.contains(key):
+            return None
+        try:
+            with self.lock(key):
+                table = self.load(key)
+                if table is None or table.compressed:
+                    return table
+                small = table.compress(bound)
+                small.save(self.table_path(key))
+                return small
+        except OSError as exc:
+            raise TableCacheError.of(exc, self.root) from None
+
     def lock(self, key: str, timeout: float = -1):
         """The key's inter-process lock (a ``filelock.FileLock``; use as a context manager)."""
         from filelock import FileLock
@@ -278,10 +313,15 @@ class TableCache:
 
     # ---- baking ---------------------------------------------------------------------------------
     def get_or_bake(self, request: TableRequest, settings: BakeSettings | None = None,
-                    progress: ProgressFn | None = None, *, bake_missing: bool = True) -> CacheResult | None:
+                    progress: ProgressFn | None = None, *, bake_missing: bool = True,
+                    compress: float | None = None) -> CacheResult | None:
         """The table of ``request`` from the cache, baking it (under the key's lock) if needed.
 
-        Returns None only when ``bake_missing`` is False and the table is not cached.
+        ``compress``: keep the table compressed within this bound (relative L2 of p per
+        direction): a baked table is compressed before it is stored, a cached uncompressed one
+        is compressed in place (:meth:`compress_entry`). A table the bound cannot hold is kept
+        uncompressed, with a TableCacheWarning. Returns None only when ``bake_missing`` is
+        False and the table is not cached.
         """
         st = settings or BakeSettings()
         key = self.key(request, st)
@@ -315,6 +355,8 @@ class TableCache:
             path.parent.mkdir(parents=True, exist_ok=True)  # a cache it cannot write fails before tracing
             table = bake_request(request, st, prog, resume_dir=pdir)
             table.header["cache_key"] = key
+            if compress is not None:
+                table = self._compressed_or_kept(table, compress, path)
             table.save(path)
             shutil.rmtree(pdir, ignore_errors=True)
             return table
@@ -325,8 +367,28 @@ class TableCache:
             raise TableCacheError.of(exc, self.root) from None
         if table is None:
             return None
+        if compress is not None and not table.compressed:
+            small = self._compressed_or_kept(table, compress, self.table_path(served), in_place=served)
+            table = small if small is not None else table
         return CacheResult(served, self.table_path(served), table, baked, time.perf_counter() - t0,
                            resumed if baked else 0)
+
+    def _compressed_or_kept(self, table: BcsdfTable, bound: float, path: Path,
+                            in_place: str | None = None) -> BcsdfTable | None:
+        """``table`` compressed within ``bound`` (stored in place under the key ``in_place``
+        when given), or, when the bound cannot hold, a TableCacheWarning and ``table`` itself
+        (None for an in-place entry gone meanwhile)."""
+        from usdfiber.bake.compression import CompressionError
+
+        try:
+            if in_place is not None:
+                return self.compress_entry(in_place, bound)
+            return table.compress(bound)
+        except CompressionError as exc:
+            why = str(exc).split(": ", 1)[1] if str(exc).startswith((f"{path}: ", "table: ")) else str(exc)
+            warnings.warn(f"{path}: cannot be compressed within {bound:g} ({why}); kept uncompressed",
+                          TableCacheWarning, stacklevel=3)
+            return table
 
     def clear_partial(self, key: str) -> None:
         """Remove the resume directory of ``key``."""

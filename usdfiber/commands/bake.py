@@ -21,6 +21,12 @@ machine (``usdfiber.bake.cost``: time, size on disk, peak memory) and printed on
 ``--dry-run`` prints it on stdout for every table to bake, with the totals. A bake estimated
 longer than ``--long-bake`` seconds (default 600) says so in a warning, with cheaper settings.
 
+``--compress [BOUND]`` keeps the tables compressed in the cache (``usdfiber.bake.compression``,
+p within BOUND, default 0.01, relative L2 per direction): each baked table is compressed before
+it is stored, and cached tables found uncompressed are compressed in place. They keep their
+keys: renders find them as they would the uncompressed tables. A table the bound cannot hold
+is stored uncompressed, with a warning.
+
 Exit status: 0 done, 2 bad input (one line on stderr), 130 interrupted (finished
 directions are kept and resumed next time).
 """
@@ -86,6 +92,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--long-bake", type=positive_float, default=None, metavar="SECONDS",
                    help="warn before a bake estimated to take longer than this (default 600)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--compress", type=_bound, nargs="?", const=_default_bound(), default=None, metavar="BOUND",
+                   help="store the tables compressed, p within BOUND relative L2 per direction "
+                        "(default 0.01; usdfiber table compress)")
     p.add_argument("--plot", action="store_true",
                    help="write each table's error-against-photons figure next to it (KEY.errors.png; "
                         "not with --scheduler or --shard)")
@@ -95,6 +104,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_bake_options(p)   # --scheduler, --shard, --task-photons, --json
     p.set_defaults(func=run)
     one_line_errors(p)
+
+
+def _default_bound() -> float:
+    from usdfiber.bake.compression import DEFAULT_BOUND
+
+    return DEFAULT_BOUND
+
+
+def _bound(text: str) -> float:
+    """``--compress``: a relative error in (0, 1)."""
+    v = positive_float(text)
+    if v >= 1:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1) (relative L2 error of p, e.g. 0.01), got {text}")
+    return v
 
 
 def _resolution(text: str) -> float | str:
@@ -193,6 +216,9 @@ def _line(res, req) -> str:
     err = t.header.get("error_estimate", {})
     status = "cached" if not res.baked else ("baked" if not res.resumed else f"baked (resumed {res.resumed} directions)")
     per = f"{int(ph.min())}" if int(ph.min()) == int(ph.max()) else f"{int(ph.min())}-{int(ph.max())}"
+    comp = t.header.get("compression")
+    if isinstance(comp, dict) and "rank" in comp:
+        status += f", compressed (rank {comp['rank']}, worst {comp.get('error_max', float('nan')):.2%})"
     users = ", ".join(req.prims[:3]) + (f" (+{len(req.prims) - 3})" if len(req.prims) > 3 else "")
     return (f"{res.key}  {res.path}  photons={int(ph.sum())} ({per}/direction)  "
             f"error={err.get('rms', float('nan')):.4f} rms, {err.get('max', float('nan')):.4f} max  "
@@ -258,13 +284,13 @@ def _worker_init(threads: int) -> None:
 
 
 def _worker(job: tuple) -> tuple:
-    root, key, req, settings = job
+    root, key, req, settings, bound = job
     import usdfiber  # noqa: F401
     from usdfiber.bake.cache import TableCache
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = TableCache(root).get_or_bake(req, settings)
+        res = TableCache(root).get_or_bake(req, settings, compress=bound)
     res.table = _Light(res.table)
     return key, res, [str(w.message) for w in caught]
 
@@ -337,6 +363,9 @@ def run(args: argparse.Namespace) -> int:
         if args.plot:
             raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
                              "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
+        if args.compress is not None:
+            raise UsageError("--compress compresses tables baked here; not with --scheduler or --shard "
+                             "(compress them afterwards with `usdfiber table compress --cache`)")
         return run_bake(args, reqs, settings, cache)
     # What the bake will cost, before it starts (the tables no cached table serves).
     try:
@@ -363,7 +392,8 @@ def run(args: argparse.Namespace) -> int:
         with ctx.Pool(min(args.jobs, len(jobs)), initializer=_worker_init, initargs=(threads,)) as pool:
             order = {k: r for k, r in jobs}
             try:
-                for key, res, msgs in pool.imap_unordered(_worker, [(cache.root, k, r, settings) for k, r in jobs]):
+                work = [(cache.root, k, r, settings, args.compress) for k, r in jobs]
+                for key, res, msgs in pool.imap_unordered(_worker, work):
                     for m in msgs:
                         print(f"usdfiber: warning: {m}", file=sys.stderr)
                     bar.write(_line(res, order[key]), file=sys.stdout)
@@ -394,7 +424,7 @@ def run(args: argparse.Namespace) -> int:
                     bar.set_postfix_str(f"err {info['rel_error']:.3f}", refresh=False)
 
         try:
-            res = cache.get_or_bake(req, settings, progress)
+            res = cache.get_or_bake(req, settings, progress, compress=args.compress)
         except BakeError as exc:  # a cache that cannot be written, a profile that cannot be traced
             print(f"usdfiber: error: {exc}", file=sys.stderr)
             return 1

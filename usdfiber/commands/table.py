@@ -22,12 +22,24 @@ by extension), chosen by ``--figure``:
   (any image format); theta_o runs from +90 (top) to -90 degrees (bottom), phi_o from 0
   (left) to 360 degrees (right).
 
+``compress`` rewrites tables in the compact, recolourable layout of
+:mod:`usdfiber.bake.compression` (a low-rank absorption basis stored with blosc2's ZFP codec;
+p within ``--bound``, default 0.01, relative L2 per direction at every checked absorption),
+atomically: ``-o OUT`` (a file, or a directory for several tables) or ``--in-place``;
+``--cache`` compresses every uncompressed table of the table cache (``--cache-dir``, else
+``$USDFIBER_CACHE_DIR``, else ``~/.cache/usdfiber``) in place, under each key's lock: a render
+reads a compressed table exactly as the uncompressed one (:mod:`usdfiber.bake.cache`). One line
+per table: its size on disk and in memory before and after, the rank, the worst checked error
+and the time. A file that is not a table, is already compressed, or cannot be kept within the
+bound gets one line on stderr and is left as it was; the others are still compressed.
+
 Light azimuth ``--phi-i`` (default 0). Undyed by default; ``--dye NAME`` (a dye preset or
 colour of ``usdfiber presets``) with ``--depth-of-shade`` (percent, default 0.1 as in
 Figure 3), ``--density`` and ``--diameter`` (defaults: the fiber recorded in the table), or
 ``--mu-a R G B`` (1/um).
 
-Exit status: 0 done, 2 bad input or an unreadable table (one line on stderr).
+Exit status: 0 done, 2 bad input or an unreadable table (one line on stderr; for ``compress``:
+any table not compressed).
 """
 from __future__ import annotations
 
@@ -35,6 +47,7 @@ import argparse
 import json
 import math
 import os
+import sys
 from typing import Any
 
 import numpy as np
@@ -59,6 +72,13 @@ def _positive(text: str) -> float:
     v = finite_float(text)
     if v <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def _bound(text: str) -> float:
+    v = finite_float(text)
+    if not 0 < v < 1:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1) (relative L2 error of p, e.g. 0.01), got {text}")
     return v
 
 
@@ -103,9 +123,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     pp.add_argument("--smooth", action="store_true", help="bilinear between bin centres instead of bins")
     pp.add_argument("-o", "--output", required=True, metavar="OUT.png", help="image to write")
     pp.set_defaults(func=run_plot)
+    from usdfiber.bake.compression import DEFAULT_BOUND
+
+    pc = tsub.add_parser("compress", help="rewrite tables in the compact, recolourable layout (or a whole cache)",
+                         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    pc.add_argument("files", nargs="*", metavar="FILE", help="table files (.npz)")
+    where = pc.add_mutually_exclusive_group()
+    where.add_argument("-o", "--output", default=None, metavar="OUT",
+                       help="the compressed table (one FILE) or a directory to write them into")
+    where.add_argument("--in-place", action="store_true", help="replace each FILE with its compressed form")
+    where.add_argument("--cache", action="store_true",
+                       help="compress every uncompressed table of the table cache in place")
+    pc.add_argument("--cache-dir", default=None, metavar="DIR",
+                    help="with --cache: the table cache (default $USDFIBER_CACHE_DIR or ~/.cache/usdfiber)")
+    pc.add_argument("--bound", type=_bound, default=DEFAULT_BOUND, metavar="E",
+                    help=f"largest relative L2 error of p per direction (default {DEFAULT_BOUND:g})")
+    pc.set_defaults(func=run_compress)
     from usdfiber.commands.bake import one_line_errors
 
-    for parser in (p, pi, pp):
+    for parser in (p, pi, pp, pc):
         one_line_errors(parser)
 
 
@@ -119,6 +155,134 @@ def _load(path: str):
         return BcsdfTable.load(path)
     except (TableError, TableLayoutError) as exc:
         raise UsageError(str(exc)) from None
+
+
+def _mb(n: float) -> str:
+    return f"{n / 1e6:.2f} MB"
+
+
+def _compressed_line(src: str, dst: str, before: tuple[int, int], table: Any, seconds: float) -> str:
+    """One table's ``compress`` report: sizes on disk and in memory, rank, worst error, time."""
+    after = (os.path.getsize(dst), table.nbytes())
+    comp = table.header["compression"]
+    target = "in place" if os.path.abspath(src) == os.path.abspath(dst) else f"-> {dst}"
+    return (f"{src} {target}: {_mb(before[0])} -> {_mb(after[0])} on disk ({before[0] / after[0]:.1f}x), "
+            f"{_mb(before[1])} -> {_mb(after[1])} in memory, rank {comp['rank']}, worst error "
+            f"{comp['error_max']:.2%} (bound {comp['bound']:.2%}), {seconds:.1f} s")
+
+
+def _compress_file(src: str, dst: str, bound: float) -> str:
+    """Compress the table ``src`` into ``dst`` (atomically); its report line. UsageError (one
+    line naming ``src``) for a file that is not a table, is compressed, or exceeds the bound."""
+    import time
+
+    from usdfiber.bake.compression import CompressionError
+    from usdfiber.cli import UsageError
+
+    t0 = time.perf_counter()
+    table = _load(src)
+    if table.compressed:
+        comp = table.header.get("compression", {})
+        raise UsageError(f"{src}: is already compressed (bound {comp.get('bound')}, rank {comp.get('rank')}); "
+                         f"expected an uncompressed table")
+    before = (os.path.getsize(src), table.nbytes())
+    try:
+        small = table.compress(bound)
+    except CompressionError as exc:
+        why = str(exc).split(": ", 1)[1] if str(exc).startswith(f"{src}: ") else str(exc)
+        raise UsageError(f"{src}: cannot be compressed within {bound:g}: {why}") from None
+    del table
+    try:
+        small.save(dst)
+    except OSError as exc:
+        raise UsageError(f"cannot write {dst}: {exc.strerror or exc}") from None
+    return _compressed_line(src, dst, before, small, time.perf_counter() - t0)
+
+
+def _compress_cache(args: argparse.Namespace) -> int:
+    """``table compress --cache``: every uncompressed table of the cache, in place under its lock."""
+    import time
+    import warnings
+
+    from usdfiber import table_format
+    from usdfiber.bake.cache import TableCache, TableCacheError, TableCacheWarning
+    from usdfiber.bake.compression import LAYOUT, CompressionError
+    from usdfiber.cli import UsageError
+
+    cache = TableCache(args.cache_dir)
+    tables = cache.root / "tables"
+    if not tables.is_dir():
+        raise UsageError(f"{cache.root}: no table cache here (expected a tables/ directory); "
+                         f"--cache-dir or $USDFIBER_CACHE_DIR chooses another")
+    failed = skipped = done = 0
+    for path in sorted(tables.glob("*.npz")):
+        memory = 0
+        try:
+            header = table_format.read_header(path)
+            if header.get("layout", {}).get("name") == LAYOUT:
+                skipped += 1
+                continue
+            memory = sum(int(np.prod(a["shape"])) * np.dtype(a["dtype"]).itemsize
+                         for a in header.get("arrays", {}).values())
+        except (table_format.TableError, OSError, AttributeError, KeyError, TypeError, ValueError):
+            pass          # the verified loader reports it
+        t0 = time.perf_counter()
+        try:
+            before = (path.stat().st_size, memory)
+        except OSError:
+            continue      # removed meanwhile
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", TableCacheWarning)
+            try:
+                small = cache.compress_entry(path.stem, args.bound)
+            except CompressionError as exc:
+                why = str(exc).split(": ", 1)[1] if str(exc).startswith(f"{path}: ") else str(exc)
+                print(f"usdfiber: error: {path}: cannot be compressed within {args.bound:g}: {why}", file=sys.stderr)
+                failed += 1
+                continue
+            except TableCacheError as exc:
+                raise UsageError(str(exc)) from None
+        for w in caught:
+            print(f"usdfiber: warning: {w.message}", file=sys.stderr)
+        if small is None:
+            failed += 1
+            continue
+        print(_compressed_line(str(path), str(path), before, small, time.perf_counter() - t0), flush=True)
+        done += 1
+    print(f"{done} table{'s' if done != 1 else ''} compressed, {skipped} already compressed"
+          + (f", {failed} not compressed" if failed else ""))
+    return 2 if failed else 0
+
+
+def run_compress(args: argparse.Namespace) -> int:
+    from usdfiber.cli import UsageError
+
+    if args.cache:
+        if args.files:
+            raise UsageError("give FILE arguments or --cache, not both")
+        return _compress_cache(args)
+    if args.cache_dir is not None:
+        raise UsageError("--cache-dir goes with --cache")
+    if not args.files:
+        raise UsageError("nothing to compress: give FILE arguments or --cache")
+    if args.output is None and not args.in_place:
+        raise UsageError("say where the compressed tables go: -o OUT or --in-place")
+    if args.output is not None and len(args.files) > 1 and not os.path.isdir(args.output):
+        raise UsageError(f"{args.output}: expected a directory for {len(args.files)} tables (-o OUT)")
+    failed = 0
+    for src in args.files:
+        if args.in_place:
+            dst = src
+        elif os.path.isdir(args.output):
+            dst = os.path.join(args.output, os.path.basename(src))
+        else:
+            dst = args.output
+        try:
+            print(_compress_file(src, dst, args.bound), flush=True)
+        except UsageError as exc:
+            print(f"usdfiber: error: {exc}", file=sys.stderr)
+            failed += 1
+    return 2 if failed else 0
 
 
 def _fmt_inputs(inputs: dict[str, Any]) -> str:
@@ -203,6 +367,11 @@ def run_inspect(args: argparse.Namespace) -> int:
         lines.append(f"               recorded dye (mu_a {', '.join(f'{x:.4g}' for x in dyed['mu_a_per_um'])} 1/um,"
                      f" {dyed['diameter_um']} um): mean " + ", ".join(f"{x:.4f}" for x in dyed["albedo_mean"]))
     q = h.get("quantization_error", {}).get("per_level", [])
+    comp = h.get("compression") if table.compressed else None
+    if comp:
+        lines.append(f"  compressed:  {comp.get('codec')}, rank {comp.get('rank')}, p within "
+                     f"{comp.get('bound', 0):.2%} relative L2 per direction (worst {comp.get('error_max', 0):.2%}, "
+                     f"rms {comp.get('error_rms', 0):.2%})")
     lines += [
         f"  storage:     {h.get('storage')} ({max(q) if q else 0:.1e} relative L2 from rounding), "
         f"{table.nbytes() / 1e6:.2f} MB in memory, {size / 1e6:.2f} MB on disk",
