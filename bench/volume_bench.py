@@ -9,6 +9,7 @@ spp and image error against explicit fibers (Figure 7 swatch) or the far field (
     python bench/volume_bench.py shirt-render [--yarns 500|2500] [--res 160x120] [--spp 2] [--passes 4] [--ref-passes 16]
                                               [--explicit] [--voxels 0.13,0.065] [--auto] [--explicit-estimate]
                                               [--budgets 3,10,30,100] [--save IMAGES.npz]
+    python bench/volume_bench.py auto [--yarns 2500] [--res 160x120] [--rounds 1]
     python bench/volume_bench.py bricks [--res 80x30] [--spp 4] [--rounds 2] [--bricks 8,0]
     python bench/volume_bench.py shirt [--yarns 5000] [--voxel-mm 1.04]
     python bench/volume_bench.py far-field-cause [--yarns 60] [--variants sheer,sparse,warps,single]
@@ -46,6 +47,11 @@ for small pieces, and then they are the reference. Also the generation's time an
 per mode the peak memory, the mean over the cloth only (``--cloth-box``, and the cloth's
 projected rectangle), the volume's homogenization warnings (the predicted excess opacity), the
 equal-time errors (``--budgets``) and, with ``--auto``, what ``--cloth auto`` chooses.
+
+``auto``: what ``--cloth auto`` makes of the shirt-render stage (``--yarns`` warps and as many
+wefts; 2500: the whole panel) at ``--res``, and the cost of deciding it (:func:`auto_choice`:
+CPU seconds of the choice alone, no translation), ``--rounds`` times in one process; also the
+stage's generation time and the process's peak memory over its memory before the choice.
 
 ``bricks``: the speed of bricks: the Figure 7 volume (the 320 x 120 view's 0.0713 mm voxels)
 in bricks of ``--bricks`` voxels and as one medium (0), rendered alternately at a low
@@ -423,6 +429,31 @@ def auto_choice(stage: Any, camera: str, w: int, h: int) -> dict[str, Any]:
             "cpu_s": time.process_time() - c0}
 
 
+def part_auto(args: argparse.Namespace) -> dict[str, Any]:
+    """``--cloth auto``'s choice on the shirt-render stage, timed (module docstring)."""
+    import usdfiber  # noqa: F401  (registers the schemas first)
+
+    from cloth_bench import build_stage
+
+    w, h = (int(v) for v in args.res.split("x"))
+    spec = {"kind": "weave", "yarn": "Skala 360", "warps": args.yarns, "wefts": args.yarns, "res": [w, h],
+            "cameras": {"whole": 1.0}}
+    c0 = time.process_time()
+    stage, info = build_stage(spec)
+    out: dict[str, Any] = {"spec": spec, "cloth_size_mm": info["cloth_size_mm"],
+                           "stage_cpu_s": time.process_time() - c0, "rounds": []}
+    for _ in range(args.rounds):
+        mem0 = _memory_mib()
+        peak_reset = _reset_peak_memory()
+        t0 = time.perf_counter()
+        rec = auto_choice(stage, "/Cams/whole", w, h)
+        rec.update(wall_s=time.perf_counter() - t0, load_average=os.getloadavg(),
+                   peak_over_before_mib=(_memory_mib()["peak_mib"] - mem0["rss_mib"]) if peak_reset else None)
+        out["rounds"].append(rec)
+        print("auto", json.dumps(rec, default=float), file=sys.stderr, flush=True)
+    return out
+
+
 #: Peak bytes per fiber segment of an explicit-fiber translation (bench/REPORT.md, "Garment
 #: scale": 0.86-0.89 KB measured on stages that translated).
 EXPLICIT_BYTES_PER_SEGMENT = 870.0
@@ -630,7 +661,8 @@ def part_far_field_cause(args: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render", "far-field-cause"))
+    ap.add_argument("part", choices=("swatch", "swatch-errors", "bricks", "shirt", "shirt-render", "auto",
+                                     "far-field-cause"))
     ap.add_argument("--res", default=None, help="swatch: 160x60; shirt-render: 160x120; bricks: 80x30")
     ap.add_argument("--spp", type=int, default=None,
                     help="swatch, shirt-render: samples per pass (2); bricks: per render (4)")
@@ -661,19 +693,21 @@ def main(argv: list[str] | None = None) -> int:
                     help="far-field-cause: the yarns' dye (1 %% disperseBlue, the shirt panel's) or none")
     ap.add_argument("--card", type=float, default=0.5, help="far-field-cause: the card's reflectance")
     ap.add_argument("--variants", default="", help="far-field-cause: sheer,sparse,warps,single (default all)")
-    ap.add_argument("--rounds", type=int, default=2, help="bricks: alternated timed renders per brick size")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="bricks: alternated timed renders per brick size; auto: timed choices")
     args = ap.parse_args(argv)
     if args.bricks is None:
         args.bricks = "8,0" if args.part == "bricks" else ""
     if args.spp is None:
         args.spp = 4 if args.part == "bricks" else 2
     if args.res is None:
-        args.res = {"bricks": "80x30", "shirt-render": "160x120", "far-field-cause": "160x120"}.get(args.part, "160x60")
+        args.res = {"bricks": "80x30", "shirt-render": "160x120", "auto": "160x120",
+                    "far-field-cause": "160x120"}.get(args.part, "160x60")
     if args.voxel_mm is None and args.part != "shirt-render":     # shirt-render: the pixel footprint
         args.voxel_mm = 0.0713 if args.part == "bricks" else 665.0 / 640.0
     out = {"machine": machine(), "part": args.part, "argv": sys.argv[1:] if argv is None else argv}
     out.update({"swatch": part_swatch, "swatch-errors": part_swatch_errors, "bricks": part_bricks,
-                "shirt": part_shirt, "shirt-render": part_shirt_render,
+                "shirt": part_shirt, "shirt-render": part_shirt_render, "auto": part_auto,
                 "far-field-cause": part_far_field_cause}[args.part](args))
     out["machine"]["load_average_end"] = os.getloadavg()
     json.dump(out, sys.stdout, indent=1, default=float)

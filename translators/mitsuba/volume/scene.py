@@ -46,10 +46,10 @@ from pxr import Usd, UsdGeom
 from usdfiber.bake.cache import TableCache
 from usdfiber.bake.settings import BakeError, BakeSettings
 from usdfiber.bcsdf import tables_for_prim
-from usdfiber.geometry.curves import CurveError, axis_scales, curves_from_prim
+from usdfiber.geometry.curves import CurveError, CurveGeometry, axis_scales, curves_from_prim
 from usdfiber.geometry.voxelize import (DEFAULT_BUDGET_BYTES, VoxelGrid, VoxelizeError, grid_bytes,
                                         polylines_from_segments, voxel_size_for_footprint, voxelize_fibers)
-from usdfiber.geometry.yarn_density import CoverageMap, YarnCurve, coverage_map, voxelize_yarns
+from usdfiber.geometry.yarn_density import CoverageMap, YarnCurve, YarnLines, coverage_map, voxelize_yarns
 from usdfiber.memory_budget import format_bytes
 from usdfiber.spec.fiber import FiberParams, FiberParamsError
 from usdfiber.spec.yarn import YarnError, YarnParams
@@ -94,12 +94,17 @@ class VolumeTranslation:
     table_seconds: float = 0.0
 
 
-def _prim_points(pl: Any, time: Usd.TimeCode) -> np.ndarray:
-    pts = np.asarray(UsdGeom.BasisCurves(pl.prim).GetPointsAttr().Get(time) or [], np.float64).reshape(-1, 3)
+def _yarn_pixels(pl: Any, time: Usd.TimeCode, view: CameraView, size: float) -> float:
+    """``view.pixels(size, points)`` over the prim's world-space control points, reading the
+    points array once: the depth's minimum is found from boxes of runs of points, then
+    computed exactly on the few runs that may hold it (the same number as over every point)."""
+    pts = np.asarray(UsdGeom.BasisCurves(pl.prim).GetPointsAttr().Get(time) or [], np.float32).reshape(-1, 3)
     if not len(pts):
-        return pts
-    xf = np.asarray(pl.xform, np.float64)
-    return pts @ xf[:3, :3] + xf[3, :3]
+        return math.inf
+    if view.pixel_size > 0:
+        return view.pixels(size, pts[:1])
+    nearest = YarnLines.from_points(pts).nearest_along(view.position, view.forward, np.asarray(pl.xform, np.float64))
+    return view.pixels(size, nearest[None])
 
 
 @dataclass(frozen=True)
@@ -125,17 +130,27 @@ class ClothChoice:
                                               "opacity_excess", "coverage")}
 
 
-def _yarn_curves(pl: Any, time: Usd.TimeCode, yarn: YarnParams) -> list[YarnCurve]:
-    """The yarn centre lines of a prim in world space, sampled twice per B-spline segment."""
+def _yarn_geometry(pl: Any, time: Usd.TimeCode, yarn: YarnParams) -> CurveGeometry:
+    """The yarn centre curves of a prim in world space (without widths: as wide as the yarn)."""
     scale = axis_scales(np.asarray(pl.xform)[:3, :3])[1]
     width = 2 * yarn.yarn_radius
     try:
-        geom = curves_from_prim(pl.prim, time, pl.xform, default_width=width / scale if 0 < scale < math.inf else width)
+        return curves_from_prim(pl.prim, time, pl.xform, default_width=width / scale if 0 < scale < math.inf else width)
     except CurveError as exc:
         raise TranslateError(str(exc)) from None
+
+
+def _yarn_curves(pl: Any, time: Usd.TimeCode, yarn: YarnParams) -> list[YarnCurve]:
+    """The yarn centre lines of a prim in world space, sampled twice per B-spline segment."""
     # The samples lie on the curve, far closer together than a voxel (a garment's centre line
     # has ~20 segments per crossing).
-    return [YarnCurve(pts, rad / yarn.yarn_radius) for pts, rad in yarn_polylines(geom, 2)]
+    return [YarnCurve(pts, rad / yarn.yarn_radius) for pts, rad in yarn_polylines(_yarn_geometry(pl, time, yarn), 2)]
+
+
+def _yarn_lines(pl: Any, time: Usd.TimeCode, yarn: YarnParams) -> YarnLines:
+    """The samples of :func:`_yarn_curves` as :class:`YarnLines`: evaluated where a query reads
+    them; the curves' control points are read once, for the run boxes."""
+    return YarnLines.from_geometry(_yarn_geometry(pl, time, yarn), 2)
 
 
 def _fiber_diameter(pl: Any, stage: Usd.Stage, time: Usd.TimeCode) -> tuple[FiberParams, float]:
@@ -146,14 +161,15 @@ def _fiber_diameter(pl: Any, stage: Usd.Stage, time: Usd.TimeCode) -> tuple[Fibe
     return params, params.diameter * 1e-6 / UsdGeom.GetStageMetersPerUnit(stage)
 
 
-def yarn_coverage(curves: Sequence[YarnCurve], yarn: YarnParams, fiber_diameter: float, voxel: float,
+def yarn_coverage(curves: Sequence[YarnCurve] | YarnLines, yarn: YarnParams, fiber_diameter: float, voxel: float,
                   source: str = "yarns",
-                  others: Sequence[tuple[Sequence[YarnCurve], YarnParams, float]] = ()) -> CoverageMap:
+                  others: Sequence[tuple[Sequence[YarnCurve] | YarnLines, YarnParams, float]] = ()) -> CoverageMap:
     """The yarns' optical depth map (:func:`usdfiber.geometry.yarn_density.coverage_map`) on a
     window of :data:`COVERAGE_WINDOW_VOXELS` voxels (at least :data:`COVERAGE_WINDOW_YARNS`
     yarn diameters) a side, with the ``others`` yarn prims of the cloth (a weave's wefts for its
     warps: the voxels smear the cloth's gaps, not one prim's): its ``opacity_bias(voxel)`` is
-    the volume's predicted excess."""
+    the volume's predicted excess. Curves as polylines or as
+    :class:`~usdfiber.geometry.yarn_density.YarnLines` (read where the window needs them)."""
     window = max(COVERAGE_WINDOW_VOXELS * voxel, COVERAGE_WINDOW_YARNS * 2.0 * yarn.yarn_radius)
     try:
         return coverage_map(curves, yarn, fiber_diameter=fiber_diameter, window=window, others=others,
@@ -201,20 +217,30 @@ def split_cloth(placements: Sequence[Any], mode: str, view: CameraView | None, t
                 voxel_size: float | None = None) -> tuple[list[Any], list[Any], list[ClothChoice]]:
     """(volume placements, curve placements, per prim a :class:`ClothChoice` saying what it
     became and why; its ``str()`` is the report line). ``voxels_per_pixel`` and
-    ``voxel_size``: as :func:`translate_volumes` will voxelize, for ``auto``'s prediction."""
+    ``voxel_size``: as :func:`translate_volumes` will voxelize, for ``auto``'s prediction.
+
+    ``auto``'s cost follows the window, not the cloth: a prim's points are read once for its
+    yarns' width in pixels (the nearest point found from boxes of runs of points), and only
+    prims of yarns under :data:`VOLUME_YARN_PIXELS` have their curves read, once per prim
+    (:class:`~usdfiber.geometry.yarn_density.YarnLines`: boxes over runs of the centre lines'
+    samples, the samples evaluated where a query reads them); the footprint at the nearest
+    sample and the coverage map (:func:`yarn_coverage`) read the runs that may matter only.
+    The 2,500 x 2,500-yarn shirt panel's choice: 24-33 CPU s, most of it reading the curves
+    (it was 128-148 s over every sample; bench/REPORT.md, "`--cloth auto`'s prediction,
+    bounded by its window")."""
     if mode not in CLOTH_MODES:
         raise TranslateError(f"--cloth {mode!r}: expected one of {', '.join(CLOTH_MODES)}")
     vols, curves, notes = [], [], []
-    yarns: dict[str, tuple[list[YarnCurve], YarnParams, float]] = {}
+    yarns: dict[str, tuple[YarnLines, YarnParams, float]] = {}
 
-    def yarn_of(pl: Any) -> tuple[list[YarnCurve], YarnParams, float]:
+    def yarn_of(pl: Any) -> tuple[YarnLines, YarnParams, float]:
         """A yarn prim's centre lines, parameters and fiber diameter (once per prim)."""
         if pl.path not in yarns:
             try:
                 yp = YarnParams.from_prim(pl.prim, time)
             except YarnError as exc:
                 raise TranslateError(str(exc)) from None
-            yarns[pl.path] = (_yarn_curves(pl, time, yp), yp, _fiber_diameter(pl, pl.prim.GetStage(), time)[1])
+            yarns[pl.path] = (_yarn_lines(pl, time, yp), yp, _fiber_diameter(pl, pl.prim.GetStage(), time)[1])
         return yarns[pl.path]
 
     for pl in placements:
@@ -234,21 +260,22 @@ def split_cloth(placements: Sequence[Any], mode: str, view: CameraView | None, t
             yarn = YarnParams.from_prim(pl.prim, time)
         except YarnError as exc:
             raise TranslateError(str(exc)) from None
-        pts = _prim_points(pl, time)
-        px = view.pixels(2 * yarn.yarn_radius, pts) if len(pts) else float("inf")
+        px = _yarn_pixels(pl, time, view, 2 * yarn.yarn_radius)
         curve_level = "explicit fibers" if px * lod_scale >= 3 or lod_scale <= 0 else "yarn far field"
         if not (px * max(lod_scale, 1e-9) < VOLUME_YARN_PIXELS and lod_scale > 0):
             curves.append(pl)
             notes.append(ClothChoice(pl.path, curve_level, f"yarns {px:.2g} px wide", yarn_pixels=px))
             continue
-        curves_, _, dia = yarn_of(pl)
-        if not curves_:
+        lines, _, dia = yarn_of(pl)
+        if lines.curve_count == 0:
             curves.append(pl)
             notes.append(ClothChoice(pl.path, curve_level, "no yarn curves to voxelize", yarn_pixels=px))
             continue
-        size = _voxel_size(pl, np.concatenate([c.points for c in curves_]), dia, view, voxels_per_pixel, voxel_size)
+        # The footprint at the nearest sample is the footprint over all of them.
+        nearest = lines.nearest_along(view.position, view.forward)[None]
+        size = _voxel_size(pl, nearest, dia, view, voxels_per_pixel, voxel_size)
         others = [yarn_of(o) for o in placements if o is not pl and o.prim.HasAPI("FiberYarnAPI")]
-        cov = yarn_coverage(curves_, yarn, dia, size, source=pl.path, others=others)
+        cov = yarn_coverage(lines, yarn, dia, size, source=pl.path, others=others)
         excess = _excess(cov, size)
         if excess <= VOLUME_OPACITY_BOUND:
             vols.append(pl)
