@@ -3,7 +3,7 @@
     python bench/bake_compression.py --tables TABLE.npz [TABLE.npz ...] [--keep-dir DIR]
     python bench/bake_compression.py --quick          # bakes a small silk table first
     python bench/bake_compression.py --sample-photons N [N ...] [--sample-incoming 30] --keep-dir DIR
-    python bench/bake_compression.py --bank-memory-child RES VARIANTS
+    python bench/bake_compression.py --bank-memory-child RES VARIANTS [BAND] [--shared] [--ballast-gb=GB]
 
 For every (levels-layout) table: its size in memory and on disk; the absorption-basis codec
 (low-rank absorption model + blosc2 ZFP) at a 1 % bound: compression time, file size, memory,
@@ -176,39 +176,68 @@ def memory_child(path: str, variants: int) -> None:
                       "wall_s": time.perf_counter() - t0}))
 
 
-def bank_memory_child(res: float, variants: int, band: int = 83) -> None:
+def bank_memory_child(res: float, variants: int, band: int = 83, shared: bool = False,
+                      ballast_gb: float = 0.0) -> None:
     """(Run in a subprocess.) What a render keeps for ``variants`` tables of the extruded
     (silk/cotton) layout at ``res`` degrees (random contents: memory does not depend on them),
-    each recoloured for the 3 RGB colours: the fiber bank (``FiberBank.build``), then what the
-    Mitsuba BSDF copies to the device from it (``FamilyDevice``: the float16 node table and the
-    sampler's CDFs; the per-node albedo). Prints the peak RSS and the bytes of each part."""
+    each recoloured for the 3 RGB colours: the fiber bank (``FiberBank.build``), then the
+    Mitsuba BSDF made from it as ``usdfiber render`` makes it (``fiber_bsdf(...,
+    release_host=True)``: the float16 nodes, the sampler's CDFs and the per-node albedo on the
+    device, the host nodes dropped as they are copied), then a render of a fiber mat whose
+    fibers use every slot (64 x 64, 4 spp) to show that it renders. ``shared``: the variants
+    share one table's arrays (distinct tables to the bank; the tables' own bytes are then
+    counted once, ``table_bytes`` says how much one is). ``ballast_gb``: that many GB held
+    (written, so resident) for the whole run: a stand-in for tables larger than the synthetic
+    one (e.g. four compressed 2 deg silk variants). Prints the peak RSS and each part."""
+    import dataclasses
+
     import drjit as dr
-    from drjit.llvm import Float, Float16
 
     from bake_common import synthetic_table
-    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot, bilinear_integral
+    from render_bench import fiber_mat, mat_scene
+    from usdfiber.backend import mitsuba
+    from usdfiber.translators.mitsuba.fiber_bank import FiberBank, FiberSlot
+    from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
+    from usdfiber.translators.mitsuba.curves import reference_normals
+    from usdfiber.translators.mitsuba.integrator import register as register_integrator
 
-    t0 = time.perf_counter()
-    tables = [synthetic_table(res, True, band, seed=v) for v in range(variants)]
-    slots = [FiberSlot(t, rgb) for t in tables for rgb in RGB]
+    mi = mitsuba()
+    register_integrator(mi)
     rss = lambda key: next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith(key))
+    ballast = np.ones(int(ballast_gb * 1e9) // 8) if ballast_gb > 0 else None
+    t0 = time.perf_counter()
+    if shared:
+        one = synthetic_table(res, True, band, seed=0)
+        tables = [one] + [dataclasses.replace(one, _recoloured={}) for _ in range(variants - 1)]
+    else:
+        tables = [synthetic_table(res, True, band, seed=v) for v in range(variants)]
+    slots = [FiberSlot(t, rgb) for t in tables for rgb in RGB]
     after_tables = rss("VmRSS:")
     bank = FiberBank.build(slots)
+    t_bank = time.perf_counter() - t0
     after_bank = rss("VmRSS:")
     fam = bank.families[False]
-    node = Float16(fam.node_table().reshape(-1))
-    marg, cond = fam.sampling_cdfs()
-    cdfs = (Float(marg.reshape(-1)), Float(cond.reshape(-1)))
-    alb = Float(bilinear_integral(np.moveaxis(fam.f.astype(np.float64), -1, 3)).astype(np.float32).reshape(-1))
-    dr.eval(node, *cdfs, alb)
-    del marg, cond
-    nodes = int(np.prod(fam.pdf.shape[1:]))
-    print(json.dumps({"res": res, "variants": variants, "slots": len(slots), "band": band,
-                      "nodes_per_slot": nodes, "node_grid": list(fam.pdf.shape[1:]),
-                      "table_bytes": sum(t.nbytes() for t in tables), "family_f_bytes": int(fam.f.nbytes),
-                      "family_pdf_bytes": int(fam.pdf.nbytes), "node_table_bytes": 8 * nodes * len(slots),
-                      "cdf_bytes": 4 * (len(cdfs[0]) + len(cdfs[1])), "rss_after_tables": after_tables,
-                      "rss_after_bank": after_bank, "rss_end": rss("VmRSS:"), "peak_rss_bytes": rss("VmHWM:"),
+    device_bytes = fam.nbytes()
+    nodes = int(np.prod(fam.slice_shape))
+    geom, length = fiber_mat(48)
+    seg_slot = (np.arange(geom.curve_count) % len(slots))[geom.segment_curve]
+    seg_psi = np.zeros(geom.segment_count)
+    bsdf = fiber_bsdf(mi, bank, seg_slot, seg_psi, reference_normals(geom), release_host=True)
+    t_device = time.perf_counter() - t0 - t_bank
+    after_device = rss("VmRSS:")
+    scene = mat_scene(mi, geom, length, bsdf, 64, integrator="usdfiber_path")
+    t1 = time.perf_counter()
+    img = np.array(mi.render(scene, spp=4))
+    dr.sync_thread()
+    t_render = time.perf_counter() - t1
+    print(json.dumps({"res": res, "variants": variants, "slots": len(slots), "band": band, "shared_tables": shared,
+                      "stored_nodes_per_slot": nodes, "stored_grid": list(fam.slice_shape), "pages": len(bsdf.fiber.families[1].pages),
+                      "table_bytes": sum(t.nbytes() for t in tables[:1 if shared else None]),
+                      "device_bytes": device_bytes, "rss_after_tables": after_tables, "rss_after_bank": after_bank,
+                      "rss_after_device": after_device, "rss_end": rss("VmRSS:"), "peak_rss_bytes": rss("VmHWM:"),
+                      "bank_s": t_bank, "device_s": t_device, "render_s": t_render,
+                      "ballast_bytes": 0 if ballast is None else int(ballast.nbytes),
+                      "image_finite": bool(np.all(np.isfinite(img))), "image_mean": float(img[..., :3].mean()),
                       "wall_s": time.perf_counter() - t0}))
 
 
@@ -328,7 +357,9 @@ def main(argv: list[str] | None = None) -> int:
         memory_child(argv[1], int(argv[2]))
         return 0
     if argv[:1] == ["--bank-memory-child"]:
-        bank_memory_child(float(argv[1]), int(argv[2]))
+        ballast = next((float(a.split("=")[1]) for a in argv if a.startswith("--ballast-gb=")), 0.0)
+        bank_memory_child(float(argv[1]), int(argv[2]), band=int(argv[3]) if len(argv) > 3 else 83,
+                          shared="--shared" in argv, ballast_gb=ballast)
         return 0
     ap = bench_parser(__doc__, "bake a small 15 deg silk table and measure it")
     ap.add_argument("--tables", nargs="*", default=[], help="uncompressed table files")

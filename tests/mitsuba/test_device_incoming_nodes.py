@@ -39,7 +39,10 @@ def test_device_lookup_agrees_with_numpy(coarse_tables, which):
     # The family keeps the table's coarse incoming nodes (mirrored through theta = 0).
     assert fam.incoming_deg == 30.0 and fam.resolution_deg == 15.0
     assert fam.pdf.shape[1:3] == (2 * g.n_theta_i, 1 if g.phi_invariant else g.n_phi_i + 1)
-    assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=1e-5)
+    # Normalized before float16 rounding (2^-11 relative per node): the integrals within 5e-4.
+    assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=5e-4)
+    # Only the theta_v >= 0 half is stored; the other half is read as its mirror.
+    assert fam.mirrored and fam.nodes[0].shape[0] == g.n_theta_i
     dev = FamilyDevice(fam)
     rng = np.random.default_rng(7)
     n = 2000

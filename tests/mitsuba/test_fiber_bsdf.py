@@ -52,9 +52,13 @@ def _bsdf(slots, psi=0.4, pass_through=True):
 def test_bank_slices_normalized_and_mirrored(silk_render_table, circle_table):
     bank = FiberBank.build([FiberSlot(silk_render_table, (0.0, 0.0, 0.0)), FiberSlot(circle_table, (0.0, 0.0, 0.0))])
     for fam in bank.families.values():
-        assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=1e-5)
-        # Extruded fibers: the slice at -theta_v is the mirror (theta_l -> -theta_l) of +theta_v.
+        # Normalized before float16 rounding (2^-11 relative per node): the integrals within 5e-4.
+        assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=5e-4)
+        # Extruded fibers: only theta_v >= 0 is stored; the slice at -theta_v is read as the
+        # mirror (theta_l -> -theta_l) of +theta_v (the device lookup's own test:
+        # tests/mitsuba/test_device_incoming_nodes.py).
         n = fam.pdf.shape[1]
+        assert fam.mirrored and all(a.shape[0] == n // 2 for a in fam.nodes)
         assert np.allclose(fam.pdf[:, 0], fam.pdf[:, n - 1, :, ::-1], atol=1e-7)
         # phi wraps: the last column repeats the first.
         assert np.array_equal(fam.pdf[..., 0], fam.pdf[..., -1])
@@ -67,7 +71,7 @@ def test_bank_resamples_other_resolutions(circle_table):
     bank = FiberBank.build([FiberSlot(circle_table, (0.0, 0.0, 0.0)), FiberSlot(coarse, (0.0, 0.0, 0.0))])
     fam = bank.families[True]
     assert fam.resolution_deg == 10.0
-    assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=1e-5)
+    assert np.allclose(bilinear_integral(fam.pdf.astype(np.float64)), 1.0, atol=5e-4)
     # Both describe the same fiber: the slices agree to the tables' noise and resolution.
     a, b = fam.pdf[0].astype(np.float64), fam.pdf[1].astype(np.float64)
     # A bound on resampling a coarser grid (the difference of 10 and 15 degree bins), not on

@@ -28,8 +28,13 @@ renderer samples exactly (the algorithm of Mitsuba's ``MarginalContinuous2D``, o
 Node values are ``p cos(theta_l)`` (a density per unit theta and phi), normalized so that
 each slice's bilinear interpolant integrates to 1 over the unit square; the density per
 steradian is then ``value / (2 pi (pi - s) cos(theta_l))``. Tables of extruded fibers hold
-``theta_v >= 0`` only: the bank mirrors them (``theta_l -> -theta_l``) so that the
-interpolation across ``theta_v = 0`` matches :class:`~usdfiber.bake.table.BcsdfTable`.
+``theta_v >= 0`` only, and so does the bank: the renderer reads a node ``theta_v < 0`` as
+the mirror (``theta_l -> -theta_l``) of its stored twin, so that the interpolation across
+``theta_v = 0`` matches :class:`~usdfiber.bake.table.BcsdfTable` at half the memory.
+
+Memory: a render keeps one float16 4-vector per stored node and slot (``Lambda p`` RGB and
+p0), built a chunk of theta_v nodes at a time; at 2 deg a non-round slot is 45 x 181 x 90 x
+181 nodes (1.06 GB), so four silk variants in three colours are 12.7 GB.
 
 Round and non-round tables form two *families* (different parameterizations); tables of
 one family share one resolution and one incoming node spacing (the ``omega_v`` nodes may be
@@ -40,7 +45,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -67,10 +71,16 @@ class FiberSlot:
 class Family:
     """Node arrays of the tables of one parameterization (see the module docstring).
 
-    ``pdf``: (T, n_tv, n_pv, H, W) float32, one undyed sampling density per table;
-    ``f``: (S, n_tv, n_pv, H, W, 3) float32, ``Lambda p`` per slot and channel;
-    ``slot_table``: (S,) the table (index into ``pdf``) of each slot.
-    ``theta_v``: the theta_v nodes (radians, increasing); ``phi_v``: the phi_v nodes
+    ``nodes``: per slot, (n_ts, n_pv, H, W, 4) float16, ``node_scale * [f_r, f_g, f_b, p0]``:
+    ``f = Lambda p`` of the slot and ``p0`` the sampling density of its table (one 8-byte
+    vector per node, what the renderer gathers); None once :meth:`release` d.
+    ``albedo``: (S, n_ts, n_pv, 3) float32, the integral of each stored slice of ``f`` over
+    the unit square (the albedo it was normalized to; the float16 nodes integrate to it
+    within their rounding, 2^-11). ``slot_table``: (S,) the table of each slot.
+    ``theta_v``: all theta_v nodes (radians, increasing); when ``mirrored`` (every table of
+    the family extruded, ``theta_symmetric``) only the nodes from :attr:`stored_start` on are
+    stored, and node ``k < stored_start`` is node ``n - 1 - k`` with ``theta_l`` negated
+    (its rows reversed): half the memory, the same interpolation. ``phi_v``: the phi_v nodes
     (one node for round tables; otherwise one turn plus the first node repeated), spaced
     ``incoming_deg`` (None: ``resolution_deg``, the bin size of the slices).
     """
@@ -79,9 +89,11 @@ class Family:
     resolution_deg: float
     theta_v: np.ndarray
     phi_v: np.ndarray
-    pdf: np.ndarray
-    f: np.ndarray
+    nodes: list[np.ndarray | None]
+    albedo: np.ndarray
     slot_table: np.ndarray
+    node_scale: float
+    mirrored: bool = False
     incoming_deg: float | None = None
 
     @property
@@ -99,68 +111,114 @@ class Family:
         """pi - s: the theta range the y coordinate spans."""
         return math.pi - self.step
 
-    @cached_property
-    def node_scale(self) -> float:
-        """The power of two node values are multiplied by before rounding to float16.
+    @property
+    def stored_start(self) -> int:
+        """The first stored theta_v node (0 unless :attr:`mirrored`)."""
+        return len(self.theta_v) // 2 if self.mirrored else 0
 
-        It puts the family's largest value in [2^14, 2^15): float16 (largest finite value
-        65504) keeps a factor of 2 of headroom, and values down to 2^-29 of the largest stay
-        normal numbers with float16's full precision. Peaky slices reach values of a few
-        hundred on a 6 deg grid (up to ``4 (H - 1) (W - 1)`` in principle), tails go down
-        to 1e-17: unscaled, the former could overflow on fine grids and the latter would
-        lose their precision. A power of two is exact to apply and to undo.
+    @property
+    def slice_shape(self) -> tuple[int, int, int, int]:
+        """(n_ts, n_pv, H, W): the stored slices of one slot."""
+        return (len(self.theta_v) - self.stored_start, len(self.phi_v), *self.slice_nodes)
+
+    @property
+    def slice_nodes(self) -> tuple[int, int]:
+        """(H, W): the nodes of one slice."""
+        h = int(round(math.pi / self.step))
+        w = 2 * h + 1
+        return h, w
+
+    @property
+    def n_tables(self) -> int:
+        return int(self.slot_table.max()) + 1
+
+    def table_slot(self, t: int) -> int:
+        """The first slot of table ``t`` (whose fourth channel holds the table's p0)."""
+        return int(np.flatnonzero(self.slot_table == t)[0])
+
+    def stored(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(stored index, flipped) of theta_v nodes ``k`` (indices into :attr:`theta_v`)."""
+        k = np.asarray(k, np.int64)
+        if not self.mirrored:
+            return k, np.zeros(k.shape, bool)
+        n, s = len(self.theta_v), self.stored_start
+        flip = k < s
+        return np.where(flip, n - 1 - k, k) - s, flip
+
+    def full(self, channel: slice | int) -> np.ndarray:
+        """(S, n_tv, n_pv, H, W[, C]) float32: stored node values / node_scale on every theta_v
+        node (mirrors filled in). For tests and small tables: it is the size the storage saves."""
+        ks, flip = self.stored(np.arange(len(self.theta_v)))
+        out = []
+        for arr in self.nodes:
+            if arr is None:
+                raise ValueError("the family's host nodes were released")
+            a = arr[ks][..., channel].astype(np.float32) / np.float32(self.node_scale)
+            a[flip] = a[flip][:, :, ::-1]
+            out.append(a)
+        return np.stack(out)
+
+    @property
+    def f(self) -> np.ndarray:
+        """(S, n_tv, n_pv, H, W, 3) float32 ``Lambda p`` on every node (:meth:`full`)."""
+        return self.full(slice(0, 3))
+
+    @property
+    def pdf(self) -> np.ndarray:
+        """(T, n_tv, n_pv, H, W) float32 p0 of each table on every node (:meth:`full`)."""
+        every = self.full(3)
+        return every[[self.table_slot(t) for t in range(self.n_tables)]]
+
+    def sampling_pdf(self, t: int) -> np.ndarray:
+        """(n_ts, n_pv, H, W) float32: table ``t``'s p0 on the stored nodes, rounded exactly as
+        the nodes store it, so that the sampler draws from the density evaluation reports."""
+        arr = self.nodes[self.table_slot(t)]
+        if arr is None:
+            raise ValueError("the family's host nodes were released")
+        return arr[..., 3].astype(np.float32) / np.float32(self.node_scale)
+
+    def table_cdfs(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """The sampler's tables of table ``t`` over its stored slices, integrals of
+        :meth:`sampling_pdf` (float32, not normalized; a mirrored slice is sampled in its
+        stored twin, y reversed).
+
+        ``marg`` (n_ts n_pv, H - 1): per slice, the running integral over y of the row
+        integrals (its last entry is the slice's total); ``cond`` (n_ts n_pv, H, W - 1): per
+        row, the running integral over x of the row's linear interpolant. Those of Mitsuba's
+        ``MarginalContinuous2D`` (continuous variant), summed in float64 one stored theta_v
+        node at a time (no full-size float64 copy).
         """
-        top = max(float(self.f.max(initial=0.0)), float(self.pdf.max(initial=0.0)))
-        if not (math.isfinite(top) and top > 0):
-            return 1.0
-        return math.ldexp(1.0, 15 - math.frexp(top)[1])
-
-    def node_table(self) -> np.ndarray:
-        """(S, n_tv, n_pv, H, W, 4) float16: ``node_scale * [f_r, f_g, f_b, p0]`` per slot and node.
-
-        What the renderer stores and gathers (one 8-byte vector per node). Each value is
-        rounded to nearest: a relative error of at most 2^-11 (4.9e-4) for values above
-        ``2^-14 / node_scale``, an absolute one of at most ``2^-25 / node_scale`` below.
-        ``p0`` (the slot's table's sampling density) rides along in the fourth channel.
-        """
-        s = self.node_scale
-        out = np.empty(self.f.shape[:-1] + (4,), np.float16)
-        out[..., :3] = self.f * s
-        out[..., 3] = self.pdf[self.slot_table] * s
-        return out
-
-    def sampling_pdf(self) -> np.ndarray:
-        """(T, n_tv, n_pv, H, W) float32: ``pdf`` rounded exactly as :meth:`node_table` stores it.
-
-        The sampler is built from these values, so that it draws from the density that
-        evaluation reports.
-        """
-        s = self.node_scale
-        return (self.pdf * s).astype(np.float16).astype(np.float32) / np.float32(s)
+        n_ts, n_pv, h, w = self.slice_shape
+        marg = np.empty((n_ts, n_pv, h - 1), np.float32)
+        cond = np.empty((n_ts, n_pv, h, w - 1), np.float32)
+        v_all = self.sampling_pdf(t)
+        for k in range(n_ts):
+            v = v_all[k].astype(np.float64)
+            c = np.cumsum((0.5 / (w - 1)) * (v[..., :-1] + v[..., 1:]), axis=-1)
+            rows = c[..., -1]
+            marg[k] = np.cumsum((0.5 / (h - 1)) * (rows[..., :-1] + rows[..., 1:]), axis=-1)
+            cond[k] = c
+        return marg.reshape(-1, h - 1), cond.reshape(-1, h, w - 1)
 
     def sampling_cdfs(self) -> tuple[np.ndarray, np.ndarray]:
-        """The sampler's tables, integrals of :meth:`sampling_pdf` (float32, not normalized).
+        """:meth:`table_cdfs` of every table, in table order: (T n_ts n_pv, H - 1) and
+        (T n_ts n_pv, H, W - 1)."""
+        parts = [self.table_cdfs(t) for t in range(self.n_tables)]
+        return np.concatenate([m for m, _ in parts]), np.concatenate([c for _, c in parts])
 
-        ``marg`` (T n_tv n_pv, H - 1): per slice, the running integral over y of the row
-        integrals (its last entry is the slice's total); ``cond`` (T n_tv n_pv, H, W - 1): per
-        row, the running integral over x of the row's linear interpolant. Those of Mitsuba's
-        ``MarginalContinuous2D`` (continuous variant), summed in float64.
-        """
-        v = self.sampling_pdf().astype(np.float64)
-        h, w = v.shape[-2:]
-        v = v.reshape(-1, h, w)
-        cond = np.cumsum((0.5 / (w - 1)) * (v[:, :, :-1] + v[:, :, 1:]), axis=-1)
-        rows = cond[:, :, -1]
-        marg = np.cumsum((0.5 / (h - 1)) * (rows[:, :-1] + rows[:, 1:]), axis=-1)
-        return marg.astype(np.float32), cond.astype(np.float32)
+    def release(self) -> None:
+        """Drop the host node arrays (once the renderer has its copy): a render of 2 degree
+        tables would otherwise hold them twice."""
+        self.nodes = [None] * len(self.nodes)
 
     def nbytes(self) -> int:
-        """Bytes the renderer keeps on the device: the float16 node table and the sampler's
-        float32 tables (:meth:`sampling_cdfs`)."""
-        t, n_tv, n_pv, h, w = self.pdf.shape
-        table = self.f[..., 0].size * 4 * 2
-        cdfs = 4 * t * n_tv * n_pv * ((h - 1) + h * (w - 1))
-        return int(table + cdfs)
+        """Bytes the renderer keeps on the device: the float16 nodes, the sampler's float32
+        tables (:meth:`sampling_cdfs`) and the per-node albedo."""
+        n_ts, n_pv, h, w = self.slice_shape
+        per = n_ts * n_pv
+        table = len(self.nodes) * per * h * w * 4 * 2
+        cdfs = 4 * self.n_tables * per * ((h - 1) + h * (w - 1))
+        return int(table + cdfs + self.albedo.nbytes)
 
 
 def bilinear_integral(values: np.ndarray) -> np.ndarray:
@@ -173,44 +231,41 @@ def bilinear_integral(values: np.ndarray) -> np.ndarray:
     return np.einsum("...hw,h,w->...", values, wy, wx)
 
 
-def _band_to_rows(rec: Recoloured) -> np.ndarray:
-    """The recoloured p on all theta_o rows: (n_ti, n_pi, n_to, n_po, C) float64."""
-    t = rec.table
-    g = t.grid
-    n_ti, n_pi, n_b, n_po, n_c = rec.p.shape
-    out = np.zeros((n_ti, n_pi, g.n_theta_o, n_po, n_c))
-    rows = t.band_start[..., None].astype(np.int64) + np.arange(n_b)
-    ti, pi = np.meshgrid(np.arange(n_ti), np.arange(n_pi), indexing="ij")
-    out[ti[..., None], pi[..., None], rows] = rec.p
-    return out
-
-
-def _native_nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
-    """p at the bank's nodes from a table on the same grid: (n_tv, n_pv, H, W, C), albedo.
-
-    Mirrors theta_v for extruded tables, wraps phi_l (and phi_v for non-round tables).
-    """
+def _native_nodes(rec: Recoloured, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """p at theta_v nodes ``k`` (indices into the family's theta_v, all nodes of a table on
+    the same grid, mirrored for extruded tables) and their albedo: (len(k), n_pv, H, W, C)
+    float32, (len(k), n_pv, C) float64. Wraps phi_l (and phi_v for non-round tables)."""
     g = rec.grid
-    p = _band_to_rows(rec)
-    alb = rec.albedo.astype(np.float64)
     if g.theta_symmetric:
         # Node k < n is the mirror of table node n - 1 - k, with theta_l negated.
-        p = np.concatenate([p[::-1, :, ::-1], p], axis=0)
-        alb = np.concatenate([alb[::-1], alb], axis=0)
+        n = g.n_theta_i
+        flip = k < n
+        ti = np.where(flip, n - 1 - k, k - n)
+    else:
+        flip = np.zeros(k.shape, bool)
+        ti = k
+    _, n_pi, n_b, n_po, n_c = rec.p.shape
+    n_pv = n_pi if g.phi_invariant else n_pi + 1
+    out = np.zeros((len(ti), n_pv, g.n_theta_o, n_po + 1, n_c), np.float32)
+    rows = rec.table.band_start[ti][..., None].astype(np.int64) + np.arange(n_b)
+    a, pi = np.meshgrid(np.arange(len(ti)), np.arange(n_pi), indexing="ij")
+    out[a[..., None], pi[..., None], rows, :n_po] = rec.p[ti]
+    if flip.any():
+        out[flip] = out[flip][:, :, ::-1]
+    alb = rec.albedo[ti].astype(np.float64)
     if not g.phi_invariant:
-        p = np.concatenate([p, p[:, :1]], axis=1)
+        out[:, n_pi] = out[:, 0]
         alb = np.concatenate([alb, alb[:, :1]], axis=1)
-    p = np.concatenate([p, p[:, :, :, :1]], axis=3)
-    return p, alb
+    out[:, :, :, n_po] = out[:, :, :, 0]
+    return out, alb
 
 
-def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float, s_in: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """p at the nodes of a grid of bin size ``s`` and omega_v node spacing ``s_in`` (radians,
-    default ``s``), with the table's interpolation."""
-    s_in = s if s_in is None else s_in
+def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float, th_v: np.ndarray,
+                     s_in: float) -> tuple[np.ndarray, np.ndarray]:
+    """p (float32) at theta_v nodes ``th_v`` (radians) of a grid of bin size ``s`` and omega_v
+    node spacing ``s_in`` (radians), with the table's interpolation."""
     n = int(round(math.pi / s))
     n_in = int(round(math.pi / s_in))
-    th_v = -0.5 * math.pi + s_in * (np.arange(n_in) + 0.5)
     th_l = -0.5 * math.pi + s * (np.arange(n) + 0.5)
     if fam_round:
         ph_v = np.array([0.0])
@@ -222,7 +277,7 @@ def _resampled_nodes(rec: Recoloured, fam_round: bool, s: float, s_in: float | N
     TV, PV, TL, PL = np.meshgrid(th_v, ph_v, th_l, ph_l, indexing="ij")
     if fam_round:
         PL = PL + PV
-    p = rec.eval_p(TV, PV, TL, PL)
+    p = rec.eval_p(TV, PV, TL, PL).astype(np.float32)
     alb = rec.albedo_at(th_v[:, None] + 0 * ph_v[None, :], ph_v[None, :] + 0 * th_v[:, None])
     return p, alb
 
@@ -301,40 +356,108 @@ def _family_incoming(res_deg: float, tables: list[BcsdfTable]) -> float:
         return res_deg
 
 
+#: Host bytes of float32 node values built at once (a chunk of theta_v nodes): bounds the
+#: transient memory of laying out a 2 degree table (35 MB per theta_v node at 2 deg, RGB).
+CHUNK_BYTES = 256 << 20
+
+
+def _scale_for(top: float) -> float:
+    """The power of two that puts ``top`` in [2^14, 2^15) (1 when ``top`` is not positive):
+    float16 (largest finite value 65504) keeps a factor of 2 of headroom, and values down to
+    2^-29 of the largest stay normal numbers with float16's full precision. Peaky slices
+    reach values of a few hundred on a 6 deg grid, tails go down to 1e-17: unscaled, the
+    former could overflow on fine grids and the latter would lose their precision. A power
+    of two is exact to apply and to undo."""
+    if not (math.isfinite(top) and top > 0):
+        return 1.0
+    return math.ldexp(1.0, 15 - math.frexp(top)[1])
+
+
 def _build_family(fam_round: bool, res_deg: float, tables: list[BcsdfTable], slots: list[FiberSlot],
                   incoming_deg: float | None = None) -> Family:
+    """Lay out the slots of one family node by node (see :class:`Family`): the undyed p0 of
+    each table, then each slot's recolouring, a chunk of theta_v nodes at a time, written
+    straight into the float16 nodes (no float32 copy of every slot is kept)."""
     s = math.radians(res_deg)
     grid = Grid(res_deg, True, fam_round, incoming_deg)  # validates the resolution and the spacing
     s_in = grid.incoming_step
+    mirrored = all(t.grid.theta_symmetric for t in tables)
+    n_full = int(round(math.pi / s_in))
+    th_nodes = -0.5 * math.pi + s_in * (np.arange(n_full) + 0.5)
+    start = n_full // 2 if mirrored else 0
+    stored = np.arange(start, n_full)
+    n_t = int(round(math.pi / s))
+    h, w = n_t, 2 * n_t + 1
+    n_pv = 1 if fam_round else 2 * n_full + 1
+    th_l = -0.5 * math.pi + s * (np.arange(n_t) + 0.5)
+    cos_l = np.cos(th_l).astype(np.float32)[None, None, :, None]
+    # The bilinear integral's weights (bilinear_integral), float32: node arrays stay float32.
+    wy = np.full(h, 1.0 / (h - 1), np.float32)
+    wy[[0, -1]] *= 0.5
+    wx = np.full(w, 1.0 / (w - 1), np.float32)
+    wx[[0, -1]] *= 0.5
+    per_node = n_pv * h * w * 3 * 4
+    chunk = max(1, CHUNK_BYTES // per_node)
+    chunks = [stored[a:a + chunk] for a in range(0, len(stored), chunk)]
 
-    def nodes(rec: Recoloured) -> tuple[np.ndarray, np.ndarray]:
+    def nodes(rec: Recoloured, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if (math.isclose(rec.grid.resolution_deg, res_deg)
                 and math.isclose(rec.grid.incoming_spacing_deg, grid.incoming_spacing_deg)):
-            return _native_nodes(rec)
-        return _resampled_nodes(rec, fam_round, s, s_in)
+            return _native_nodes(rec, k)
+        return _resampled_nodes(rec, fam_round, s, th_nodes[k], s_in)
 
-    n_t = int(round(math.pi / s))
-    th_l = -0.5 * math.pi + s * (np.arange(n_t) + 0.5)
-    cos_l = np.cos(th_l)[None, None, :, None]
-    th_nodes = -0.5 * math.pi + s_in * (np.arange(int(round(math.pi / s_in))) + 0.5)
-    pdfs = []
-    for t in tables:
-        p0, _ = nodes(t.recolour(0.0))
-        d = p0.mean(axis=-1) * cos_l
-        tot = bilinear_integral(d)
-        pdfs.append(np.where(tot[..., None, None] > 0, d / np.where(tot > 0, tot, 1.0)[..., None, None], 1.0))
-    fs, slot_table = [], []
-    for sl in slots:
-        rec = sl.table.recolour(list(sl.sigma_a))
-        p, alb = nodes(rec)
-        d = p * cos_l[..., None]
-        tot = bilinear_integral(np.moveaxis(d, -1, 0))               # (C, n_tv, n_pv)
-        tot = np.moveaxis(tot, 0, -1)
-        norm = np.where(tot > 0, alb / np.where(tot > 0, tot, 1.0), 0.0)
-        fs.append((d * norm[:, :, None, None, :]).astype(np.float32))
-        slot_table.append(next(i for i, t in enumerate(tables) if t is sl.table))
-    n_pv = pdfs[0].shape[1]
+    def table_pdf(t: BcsdfTable) -> np.ndarray:
+        """p0 of table ``t`` on the stored nodes, each slice normalized (float32)."""
+        rec0 = t.recolour(0.0)
+        pdf = np.empty((len(stored), n_pv, h, w), np.float32)
+        for k in chunks:
+            p0, _ = nodes(rec0, k)
+            d = p0.mean(axis=-1) * cos_l
+            tot = np.einsum("abhw,h,w->ab", d, wy, wx, optimize=True)
+            pdf[k - start] = np.where(tot[..., None, None] > 0, d / np.where(tot > 0, tot, 1.0)[..., None, None], 1.0)
+        return pdf
+
+    # Dyes only remove light: Lambda p <= p0 bin for bin, so p0's largest value sets the scale
+    # (f's normalization to its own albedo can exceed it by the interpolation error: the
+    # headroom of 2 covers that, and a rescale below covers anything more). One table's p0 is
+    # held at a time (computed twice: a 2 deg table's is 0.5 GB).
+    scale = _scale_for(max(float(table_pdf(t).max(initial=0.0)) for t in tables))
+    slot_table = np.array([next(i for i, t in enumerate(tables) if t is sl.table) for sl in slots], np.int32)
+    out: list[np.ndarray | None] = [None] * len(slots)
+    albedo = np.empty((len(slots), len(stored), n_pv, 3), np.float32)
+    for ti, t in enumerate(tables):
+        pdf = table_pdf(t)
+        for si in np.flatnonzero(slot_table == ti):
+            rec = t.recolour(list(slots[si].sigma_a))
+            arr = np.empty((len(stored), n_pv, h, w, 4), np.float16)
+            for k in chunks:
+                f, alb = nodes(rec, k)                      # p, float32, changed in place below
+                f *= cos_l[..., None]
+                tot = np.einsum("abhwc,h,w->abc", f, wy, wx, optimize=True).astype(np.float64)     # (n, n_pv, C)
+                ok = tot > 0
+                f *= np.where(ok, alb / np.where(ok, tot, 1.0), 0.0).astype(np.float32)[:, :, None, None, :]
+                top = max(float(f.max(initial=0.0)), float(pdf[k - start].max(initial=0.0)))
+                if top * scale >= 65504.0:
+                    # Rare: rescale what is written so far (exact: a power of two).
+                    new = _scale_for(top)
+                    with np.errstate(all="ignore"):          # arr's unwritten chunks
+                        for a in [*out, arr]:
+                            if a is not None:
+                                a *= np.float16(new / scale)
+                    scale = new
+                f *= np.float32(scale)
+                arr[k - start, ..., :3] = f
+                arr[k - start, ..., 3] = pdf[k - start] * np.float32(scale)
+                # Each slice integrates to the albedo it was normalized to (within the float16
+                # rounding of its nodes, 2^-11).
+                albedo[si, k - start] = np.where(ok, alb, 0.0)
+            out[si] = arr
+            del rec
+        del pdf
+        # The bank now holds what the renderer reads; the table's cached recolourings (the
+        # undyed one of a 2 deg table is 0.5 GB) would sit beside it for the whole render.
+        t.forget_recolourings()
     phi_v = np.array([0.0]) if fam_round else 0.5 * s_in + s_in * np.arange(n_pv)
-    return Family(round=fam_round, resolution_deg=res_deg, theta_v=th_nodes, phi_v=phi_v,
-                  pdf=np.stack(pdfs).astype(np.float32), f=np.stack(fs), slot_table=np.array(slot_table, np.int32),
+    return Family(round=fam_round, resolution_deg=res_deg, theta_v=th_nodes, phi_v=phi_v, nodes=out,
+                  albedo=albedo, slot_table=slot_table, node_scale=scale, mirrored=mirrored,
                   incoming_deg=grid.incoming_deg)

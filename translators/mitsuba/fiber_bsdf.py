@@ -49,9 +49,11 @@ Yarn far fields (:mod:`usdfiber.translators.mitsuba.yarn_far_field`) are slots o
 drawn on a curve of the yarn's bounding width: there ``q`` is the far field's coverage, the
 fraction of rays meeting the tube that meet a fiber, a function of ``theta_v``.
 
-Storage: per node one float16 4-vector (``Lambda p`` RGB and ``p0``, scaled by a power of
-two per family, :meth:`~usdfiber.translators.mitsuba.fiber_bank.Family.node_table`), converted to
+Storage: per stored node one float16 4-vector (``Lambda p`` RGB and ``p0``, scaled by a power of
+two per family, :class:`~usdfiber.translators.mitsuba.fiber_bank.Family`), converted to
 float32 before any arithmetic: values carry a relative rounding error of at most 2^-11.
+Extruded tables store ``theta_v >= 0``; a node below reads its mirror image. Slots are
+grouped into pages of fewer than 2^32 values (Dr.Jit's array limit).
 The sampler's CDFs are float32 integrals of the same rounded ``p0``, so sampling draws from
 the density that ``pdf`` reports.
 """
@@ -64,7 +66,7 @@ import numpy as np
 
 from usdfiber.backend import configure_llvm
 
-from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank, FiberSlot, bilinear_integral
+from usdfiber.translators.mitsuba.fiber_bank import Family, FiberBank, FiberSlot
 from usdfiber.translators.mitsuba.plugins import VariantPlugin, forwarding_bsdf
 
 configure_llvm()   # Dr.Jit reads the path of its LLVM once, when it is first imported
@@ -92,32 +94,118 @@ def device_array(kind: Any, arr: np.ndarray) -> Any:
     return x
 
 
-class FamilyDevice:
-    """A family's arrays on the device, its interpolation and its sampler."""
+#: Dr.Jit arrays hold at most 2^32 entries: float16 node values are split into pages of
+#: whole slots below that (a 2 deg non-round slot is 531M values: 8 slots a page).
+PAGE_ENTRIES = (1 << 32) - 4
 
-    def __init__(self, fam: Family) -> None:
+
+class FamilyDevice:
+    """A family's arrays on the device, its interpolation and its sampler.
+
+    ``release``: drop the family's host nodes slot by slot as they are copied (a render of
+    2 deg tables cannot hold them twice); the :class:`Family` is then spent.
+    """
+
+    def __init__(self, fam: Family, release: bool = False) -> None:
         self.round = fam.round
         self.s = fam.step                   # bin size of the omega_l slices
         self.s_in = fam.incoming_step       # spacing of the omega_v nodes (a multiple of s)
         self.span = fam.theta_span
-        t, n_tv, n_pv, h, w = fam.pdf.shape
-        self.n_tv, self.n_pv, self.h, self.w = n_tv, n_pv, h, w
+        n_ts, n_pv, h, w = fam.slice_shape
+        self.n_tv, self.n_ts, self.n_pv, self.h, self.w = len(fam.theta_v), n_ts, n_pv, h, w
+        self.mirrored, self.start = fam.mirrored, fam.stored_start
         self.theta0 = float(fam.theta_v[0])
         self.slice = h * w
         # Node storage: float16, gathered as one 4-vector (8 bytes) per node. Derived from the
         # variant's own types, so this holds for every backend (llvm, cuda).
         self._v4h = dr.float16_array_t(mi.Vector4f)
-        # Per slot and node: (Lambda p) RGB and the sampling density of the slot's table,
-        # interleaved so that one 4-wide gather reads both; float16 times a power of two
-        # (Family.node_table), which halves the bytes the random lookups pull through
-        # the caches.
-        self.fp = device_array(dr.float16_array_t(mi.Float), fam.node_table().reshape(-1))
+        f16 = dr.float16_array_t(mi.Float)
+        # Per slot and stored node: (Lambda p) RGB and the sampling density of the slot's
+        # table, interleaved so that one 4-wide gather reads both; float16 times a power of
+        # two (Family.node_scale), which halves the bytes the random lookups pull through the
+        # caches. Slots are grouped into pages of fewer than 2^32 values.
+        per_slot = n_ts * n_pv * h * w * 4
+        if per_slot > PAGE_ENTRIES:
+            raise ValueError(f"one slot of a {fam.resolution_deg:g} deg family has {per_slot} node values, more than "
+                             f"a device array holds (2^32)")
+        per_page = PAGE_ENTRIES // per_slot
+        n_slots = len(fam.nodes)
+        self.pages = []
+        # The sampler's CDFs, integrals of the same float16-rounded p0 that eval gathers,
+        # copied table by table (one table's on the host at a time).
+        n_marg, n_cond = n_ts * n_pv * (h - 1), n_ts * n_pv * h * (w - 1)
+        n_tables = fam.n_tables
+        if n_tables * n_cond > PAGE_ENTRIES:
+            raise ValueError(f"the sampling tables of {n_tables} {fam.resolution_deg:g} deg tables have "
+                             f"{n_tables * n_cond} entries, more than a device array holds (2^32)")
+        if n_tables == 1:
+            marg, cond = fam.table_cdfs(0)
+            self.marg = device_array(mi.Float, marg.reshape(-1))
+            self.cond = device_array(mi.Float, cond.reshape(-1))
+        else:
+            self.marg = dr.empty(mi.Float, n_tables * n_marg)
+            self.cond = dr.empty(mi.Float, n_tables * n_cond)
+            for t in range(n_tables):
+                marg, cond = fam.table_cdfs(t)
+                dr.scatter(self.marg, mi.Float(marg.reshape(-1)), dr.arange(mi.UInt32, n_marg) + t * n_marg)
+                dr.scatter(self.cond, mi.Float(cond.reshape(-1)), dr.arange(mi.UInt32, n_cond) + t * n_cond)
+                dr.eval(self.marg, self.cond)
+                dr.sync_thread()
+            dr.make_opaque(self.marg, self.cond)
+        del marg, cond
+        for first in range(0, n_slots, per_page):
+            members = range(first, min(n_slots, first + per_page))
+            if len(members) == 1 or not release:
+                page = device_array(f16, np.concatenate([fam.nodes[k].reshape(-1) for k in members]))
+            else:
+                # Filled slot by slot in place: never the whole page on the host and the device
+                # (uninitialized memory is committed as it is written, while the host's shrinks).
+                page = dr.empty(f16, len(members) * per_slot)
+                for m, k in enumerate(members):
+                    src = f16(fam.nodes[k].reshape(-1))
+                    dr.scatter(page, src, dr.arange(mi.UInt32, per_slot) + m * per_slot)
+                    # Kernels run asynchronously: wait for this one before the host copy goes,
+                    # or every slot's host nodes stay alive until the first render.
+                    dr.eval(page)
+                    dr.sync_thread()
+                    del src
+                    fam.nodes[k] = None
+                dr.make_opaque(page)
+            if release:
+                for k in members:
+                    fam.nodes[k] = None
+            self.pages.append(page)
+        self.per_page = per_page
         self.inv_scale = 1.0 / fam.node_scale
         self.slot_table = device_array(mi.UInt32, fam.slot_table.astype(np.uint32))
-        # The sampler's CDFs, integrals of the same float16-rounded p0 that eval gathers.
-        marg, cond = fam.sampling_cdfs()
-        self.marg = device_array(mi.Float, marg.reshape(-1))
-        self.cond = device_array(mi.Float, cond.reshape(-1))
+        # Per slot and stored incoming node: the albedo Lambda RGB, the integral of the slice's
+        # Lambda p interpolant (what eval integrates to), for eval_diffuse_reflectance.
+        self.albedo = device_array(mi.Float, fam.albedo.reshape(-1))
+
+    def stored(self, k: Any) -> tuple[Any, Any]:
+        """(stored theta_v node, flipped) of theta_v node ``k``: below the stored half a
+        node is its mirror image (rows reversed)."""
+        if not self.mirrored:
+            return k, mi.Bool(False)
+        flip = k < self.start
+        return dr.select(flip, self.n_tv - 1 - k, k) - self.start, flip
+
+    def _page_of(self, slot: Any) -> tuple[Any, Any]:
+        """(page, slot within the page) of a slot."""
+        if len(self.pages) == 1:
+            return mi.UInt32(0), slot
+        page = slot // self.per_page
+        return page, slot - page * self.per_page
+
+    def _gather(self, page: Any, index: Any, active: Any) -> Any:
+        """The node 4-vector at ``index`` (4-vector units) of each lane's page."""
+        if len(self.pages) == 1:
+            return mi.Vector4f(dr.gather(self._v4h, self.pages[0], index, active))
+        out = mi.Vector4f(0.0)
+        for p, arr in enumerate(self.pages):
+            m = active & (page == p)
+            out = dr.select(m, mi.Vector4f(dr.gather(self._v4h, arr, index, m)), out)
+        return out
 
     # -- coordinates --------------------------------------------------------------------------
     def _phi_v(self, ph_v: Any) -> Any:
@@ -155,15 +243,20 @@ class FamilyDevice:
 
         [slice][corner]: slices (kt, kp), (kt, kp + 1), (kt + 1, kp), (kt + 1, kp + 1)
         (two for round tables), corners (i, j), (i + 1, j), (i, j + 1), (i + 1, j + 1);
-        each a Vector4f ``node_scale * [f_r, f_g, f_b, p0]``.
+        each a Vector4f ``node_scale * [f_r, f_g, f_b, p0]``. A mirrored slice reads its
+        stored twin's rows ``H - 1 - j`` and ``H - 2 - j``.
         """
-        base = slot * (self.n_tv * self.n_pv * self.slice) + j * self.w + i
+        page, loc = self._page_of(slot)
         out = []
         for dt in (0, 1):
+            ks, flip = self.stored(kt + dt)
+            r0 = dr.select(flip, self.h - 1 - j, j)
+            r1 = dr.select(flip, self.h - 2 - j, j + 1)
             for dp in ((0,) if self.round else (0, 1)):
-                b = base + ((kt + dt) * self.n_pv + (kp + dp)) * self.slice
-                out.append([mi.Vector4f(dr.gather(self._v4h, self.fp, b + o, active))
-                            for o in (0, 1, self.w, self.w + 1)])
+                sl = ((loc * self.n_ts + ks) * self.n_pv + (kp + dp)) * self.slice
+                b0 = sl + r0 * self.w + i
+                b1 = sl + r1 * self.w + i
+                out.append([self._gather(page, b, active) for b in (b0, b0 + 1, b1, b1 + 1)])
         return out
 
     def _blend(self, cell: list[list[Any]], tt: Any, tp: Any, ax: Any, ay: Any) -> tuple[Any, Any]:
@@ -221,7 +314,8 @@ class FamilyDevice:
             u = dr.select(up_t, u / dr.maximum(tt, 1e-12), (u - tt) / dr.maximum(1.0 - tt, 1e-12))
             dp = dr.select(u < tp, U(1), U(0))
             pick = 2 * dt + dp
-        sl = (table * self.n_tv + kt + dt) * self.n_pv + kp + dp
+        ks, flip = self.stored(kt + dt)
+        sl = (table * self.n_ts + ks) * self.n_pv + kp + dp
         h1, w1 = self.h - 1, self.w - 1
         uy = dr.clip(u2.y, dr.epsilon(F), 1.0 - dr.epsilon(F))
         ux = dr.clip(u2.x, dr.epsilon(F), 1.0 - dr.epsilon(F))
@@ -242,6 +336,9 @@ class FamilyDevice:
         ux *= dr.lerp(r0, r1, ay)
         col = dr.binary_search(0, w1 - 1, lambda k: cdf(k, active) < ux)
         ux -= cdf(col - 1, active & (col > 0))
+        # A mirrored slice was sampled in its stored twin: y reversed.
+        row = dr.select(flip, h1 - 1 - row, row)
+        ay = dr.select(flip, 1.0 - ay, ay)
         cell = self._cell(slot, kt, kp, col, row, active)
         # The picked slice's p0 along the cell's edges x = col and x = col + 1, at y.
         ends = []
@@ -296,20 +393,17 @@ class FiberBcsdf:
 
     # ---- data ----------------------------------------------------------------------------------
     def set_fibers(self, bank: FiberBank, seg_slot: np.ndarray, seg_psi: np.ndarray,
-                   seg_ref: np.ndarray, pass_through: bool = True) -> None:
-        """Give the BSDF its tables and per-segment data (slot, psi in radians, reference)."""
+                   seg_ref: np.ndarray, pass_through: bool = True, release_host: bool = False) -> None:
+        """Give the BSDF its tables and per-segment data (slot, psi in radians, reference).
+        ``release_host``: drop the bank's host nodes as they are copied (the bank is spent)."""
         F, U = mi.Float, mi.UInt32
         n = len(seg_slot)
         if not (len(seg_psi) == n and seg_ref.shape == (n, 3)):
             raise ValueError("per-segment arrays differ in length")
         if n and (seg_slot.min() < 0 or seg_slot.max() >= len(bank.slots)):
             raise ValueError("segment slot index out of range")
-        self.families = [(FamilyDevice(bank.families[r]) if r in bank.families else None)
+        self.families = [(FamilyDevice(bank.families[r], release=release_host) if r in bank.families else None)
                          for r in (True, False)]
-        # Per slot and incoming node: the albedo Lambda RGB, the integral of the slice's
-        # Lambda p interpolant (what eval integrates to), for eval_diffuse_reflectance.
-        self._albedo = [(device_array(mi.Float, _node_albedo(bank.families[r]).reshape(-1))
-                         if r in bank.families else None) for r in (True, False)]
         self._slot_family = device_array(U, bank.slot_family.astype(np.uint32))
         self._slot_index = device_array(U, bank.slot_index.astype(np.uint32))
         self._n_w = int(bank.slot_width.shape[1])
@@ -537,8 +631,8 @@ class FiberBcsdf:
             acc = mi.Color3f(0.0)
             for dt, wt in ((0, 1.0 - tt), (1, tt)):
                 for dp, wp in (((0, 1.0),) if fam.round else ((0, 1.0 - tp), (1, tp))):
-                    node = (k * fam.n_tv + kt + dt) * fam.n_pv + kp + dp
-                    acc += (wt * wp) * dr.gather(mi.Color3f, self._albedo[fid], node, m)
+                    node = (k * fam.n_ts + fam.stored(kt + dt)[0]) * fam.n_pv + kp + dp
+                    acc += (wt * wp) * dr.gather(mi.Color3f, fam.albedo, node, m)
             out = dr.select(m, acc, out)
         return out
 
@@ -567,12 +661,6 @@ class FiberBcsdf:
         return f"FiberBcsdf[families={[f is not None for f in self.families]}, pass_through={self.pass_through}]"
 
 
-def _node_albedo(fam: Family) -> np.ndarray:
-    """(S, n_tv, n_pv, 3) float32: the integral of each slot's ``Lambda p`` slice over the unit
-    square (the slices are densities in (x, y)), i.e. its albedo at each incoming node."""
-    return bilinear_integral(np.moveaxis(fam.f.astype(np.float64), -1, 3)).astype(np.float32)
-
-
 def _define_plugin(mi: Any) -> type:
     class FiberBcsdfPlugin(forwarding_bsdf(mi)):
         """``usdfiber_bcsdf``: Mitsuba's view of a :class:`FiberBcsdf`."""
@@ -583,9 +671,10 @@ def _define_plugin(mi: Any) -> type:
             self.m_components, self.m_flags = self.fiber.flags()
 
         def set_fibers(self, bank: FiberBank, seg_slot: np.ndarray, seg_psi: np.ndarray,
-                       seg_ref: np.ndarray, pass_through: bool = True) -> None:
+                       seg_ref: np.ndarray, pass_through: bool = True, release_host: bool = False) -> None:
             """:meth:`FiberBcsdf.set_fibers`, then the flags that follow from it."""
-            self.fiber.set_fibers(bank, seg_slot, seg_psi, seg_ref, pass_through=pass_through)
+            self.fiber.set_fibers(bank, seg_slot, seg_psi, seg_ref, pass_through=pass_through,
+                                  release_host=release_host)
             self.m_components, self.m_flags = self.fiber.flags()
 
         @property
@@ -619,10 +708,11 @@ def register(mi: Any) -> type:
 
 
 def fiber_bsdf(mi: Any, bank: FiberBank, seg_slot: Sequence[int] | np.ndarray, seg_psi: Sequence[float] | np.ndarray,
-               seg_ref: np.ndarray, *, pass_through: bool = True) -> Any:
-    """A ready BSDF for curves whose segments use ``bank``'s slots (one per segment)."""
+               seg_ref: np.ndarray, *, pass_through: bool = True, release_host: bool = False) -> Any:
+    """A ready BSDF for curves whose segments use ``bank``'s slots (one per segment);
+    ``release_host``: the bank's host nodes are dropped as they are copied (the bank is spent)."""
     cls = bsdf_class(mi)
     b = cls(mi.Properties())
     b.set_fibers(bank, np.asarray(seg_slot), np.asarray(seg_psi, dtype=np.float64), np.asarray(seg_ref, np.float64),
-                 pass_through=pass_through)
+                 pass_through=pass_through, release_host=release_host)
     return b

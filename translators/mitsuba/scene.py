@@ -280,8 +280,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     if fibers is not None:
         warnings.extend(fibers.warnings)
         if opt.model == "table":
+            # The bank's host nodes are dropped as they reach the device (2 deg tables would not
+            # fit twice); only its slots are read after this.
             bsdf = prof.call("bsdf", fiber_bsdf, mi, fibers.bank, fibers.seg_slot, fibers.seg_psi, fibers.seg_ref,
-                             pass_through=opt.pass_through)
+                             pass_through=opt.pass_through, release_host=True)
             entries["fibers"] = prof.call("curve_shape", make_curve_shape, fibers.geometry, bsdf, "fibers")
         else:
             # A fitted standard model instead of the table (Aliaga et al. Figures 9, 10).

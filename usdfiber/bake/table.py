@@ -316,6 +316,12 @@ class BcsdfTable:
         return np.stack([self._p_reference(s).astype(np.float32) for s in sigmas], axis=-1)
 
     # ---- recolouring -----------------------------------------------------------------------
+    def forget_recolourings(self) -> None:
+        """Drop the cached recolourings (:meth:`recolour` keeps up to 1 GiB of them): a caller
+        that has laid out what it needs (the renderer's fiber bank) frees them for the rest
+        of its run."""
+        self._recoloured.clear()
+
     def recolour(self, sigma_a_rgb_per_um: float | Sequence[float] = 0.0,
                  diameter_scale: float = 1.0, *, kernel: bool | None = None) -> Recoloured:
         """p and Lambda for an absorption per channel (1/um), without re-tracing.
