@@ -39,6 +39,17 @@ def straight_curves(stage: Usd.Stage, path: str, width: float) -> Usd.Prim:
     return c.GetPrim()
 
 
+def add_side_camera(stage: Usd.Stage, path: str = "/World/Cam") -> UsdGeom.Camera:
+    """An orthographic camera 100 um above the single fiber (:func:`single_fiber_stage`),
+    looking down -z over 800 x 400 um (2 um per pixel at 400 x 200)."""
+    cam = UsdGeom.Camera.Define(stage, path)
+    cam.CreateProjectionAttr("orthographic")
+    cam.CreateHorizontalApertureAttr(800.0)
+    cam.CreateVerticalApertureAttr(400.0)
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+    return cam
+
+
 def add_camera(stage: Usd.Stage, z: float, path: str = "/Cam") -> UsdGeom.Camera:
     """A 50 mm camera with a square 36 mm aperture (field of view 36/50 across) at height
     ``z`` on the z axis, looking down -z."""

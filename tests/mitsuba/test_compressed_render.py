@@ -8,12 +8,12 @@ import shutil
 import numpy as np
 
 import usdfiber  # noqa: F401  (registers schemas first)
-from pxr import Gf, UsdGeom, UsdLux
+from pxr import UsdLux
 
 from usdfiber.bake.table import BcsdfTable
 from usdfiber.cli import main
 from usdfiber.image_output import read_exr_channels
-from stage_util import single_fiber_stage
+from stage_util import add_side_camera, single_fiber_stage
 from stats_util import FALSE_FAILURE, satterthwaite_dof, t_limit
 
 FAST = ["--bake-resolution", "15", "--bake-photons", "1000"]
@@ -28,11 +28,7 @@ def _stage(path) -> str:
     stage, prim = single_fiber_stage(path, "silk", dye="reactiveRed", depth_of_shade=1.0)
     prim.GetAttribute("fiber:profile:variantCount").Set(1)      # one table to bake and compress
     UsdLux.DomeLight.Define(stage, "/World/Dome").CreateIntensityAttr(1.0)
-    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
-    cam.CreateProjectionAttr("orthographic")
-    cam.CreateHorizontalApertureAttr(800.0)
-    cam.CreateVerticalApertureAttr(400.0)
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+    add_side_camera(stage)
     stage.GetRootLayer().Save()
     return str(path)
 

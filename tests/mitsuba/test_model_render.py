@@ -24,6 +24,7 @@ from usdfiber import authoring as A
 from usdfiber.cli import main
 from usdfiber.image_output import read_exr_channels
 
+from stage_util import add_side_camera
 from stats_util import FALSE_FAILURE, z_limit
 
 FAST = ["--bake-resolution", "10", "--bake-photons", "20000"]
@@ -56,11 +57,7 @@ def _stage(path, fiber: str) -> str:
     light = UsdLux.DistantLight.Define(stage, "/World/Key")
     light.CreateIntensityAttr(2.0)
     light.AddRotateXYZOp().Set(Gf.Vec3f(-30, 20, 0))
-    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
-    cam.CreateProjectionAttr("orthographic")
-    cam.CreateHorizontalApertureAttr(800.0)
-    cam.CreateVerticalApertureAttr(400.0)
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+    add_side_camera(stage)
     stage.GetRootLayer().Save()
     return str(path)
 
