@@ -131,7 +131,7 @@ class YarnFarField:
 
     Duck-types the parts of :class:`usdfiber.bake.table.BcsdfTable` the renderer's
     :class:`~usdfiber.translators.mitsuba.fiber_bank.FiberBank` reads (``grid``, ``band_start``,
-    ``arrays["width"]``, ``baked_diameter_um``, ``recolour``). Arrays:
+    ``arrays["width"]``, ``baked_diameter_um``, ``recolour``, ``forget_recolourings``). Arrays:
 
     ``p`` (n_ti, 1, n_to, n_po, C) float32 per steradian, each channel's slice integrating to
     1; ``albedo`` (n_ti, 1, C); ``levels`` (C,), when present: channel k was traced with the
@@ -198,6 +198,11 @@ class YarnFarField:
             cache[key] = Recoloured(self, np.array(key), np.stack(p, -1).astype(np.float32),  # type: ignore[arg-type]
                                     np.stack(albedo, -1).astype(np.float32))
         return cache[key]
+
+    def forget_recolourings(self) -> None:
+        """Drop the colours :meth:`recolour` cached (as :meth:`usdfiber.bake.table.BcsdfTable.
+        forget_recolourings`): the renderer's fiber bank calls it once it has laid them out."""
+        self.__dict__.pop("_colours", None)
 
     def _channel(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """(p (n_ti, 1, n_to, n_po), albedo (n_ti, 1)) at optical depth ``s``: each bin's mass
