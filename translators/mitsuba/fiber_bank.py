@@ -73,7 +73,7 @@ class Family:
 
     ``nodes``: per slot, (n_ts, n_pv, H, W, 4) float16, ``node_scale * [f_r, f_g, f_b, p0]``:
     ``f = Lambda p`` of the slot and ``p0`` the sampling density of its table (one 8-byte
-    vector per node, what the renderer gathers); None once :meth:`release` d.
+    vector per node, what the renderer gathers); None once released (:meth:`release`).
     ``albedo``: (S, n_ts, n_pv, 3) float32, the integral of each stored slice of ``f`` over
     the unit square (the albedo it was normalized to; the float16 nodes integrate to it
     within their rounding, 2^-11). ``slot_table``: (S,) the table of each slot.

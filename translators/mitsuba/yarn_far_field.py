@@ -200,8 +200,9 @@ class YarnFarField:
         return cache[key]
 
     def forget_recolourings(self) -> None:
-        """Drop the colours :meth:`recolour` cached (as :meth:`usdfiber.bake.table.BcsdfTable.
-        forget_recolourings`): the renderer's fiber bank calls it once it has laid them out."""
+        """Drop the colours :meth:`recolour` cached (as
+        :meth:`usdfiber.bake.table.BcsdfTable.forget_recolourings`): the renderer's fiber bank
+        calls it once it has laid them out."""
         self.__dict__.pop("_colours", None)
 
     def _channel(self, s: float) -> tuple[np.ndarray, np.ndarray]:
