@@ -142,3 +142,25 @@ def test_long_bake_warning_above_the_threshold(tmp_path):
     quiet = run(*args, "--cache-dir", tmp_path / "b")
     assert quiet.returncode == 0 and "estimate: polyester" in quiet.stderr
     assert "this bake is estimated" not in quiet.stderr
+
+
+def test_bake_command_estimator_option(tmp_path):
+    """``--estimator expected`` reaches the table (its header and cache key); a fiber with cuticle
+    scales, which the expected value cannot take, is refused in one line before any bake; an
+    unknown name is a one-line usage error."""
+    base = ["bake", "--resolution", "30", "--photons", "2000", "--batches", "2", "--no-progress"]
+    out = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-normals", "4",
+              "--cache-dir", tmp_path / "a")
+    assert out.returncode == 0, out.stderr
+    tables = list((tmp_path / "a" / "tables").glob("*.npz"))
+    assert len(tables) == 1
+    from usdfiber.bake.table import BcsdfTable
+
+    settings = BcsdfTable.load(tables[0]).header["bake"]["settings"]
+    assert settings["estimator"] == ["expected"] and settings["expected_normals"] == 4, settings
+    wool = run(*base, "--preset", "wool", "--estimator", "expected", "--cache-dir", tmp_path / "b")
+    assert wool.returncode == 1 and len(wool.stderr.strip().splitlines()) == 1, wool.stderr
+    assert "cuticle scales" in wool.stderr and "--estimator plain" in wool.stderr
+    assert not (tmp_path / "b" / "tables").exists() or not list((tmp_path / "b" / "tables").glob("*.npz"))
+    bad = run(*base, "--preset", "polyester", "--estimator", "magic", "--cache-dir", tmp_path / "c")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "magic" in bad.stderr, bad.stderr

@@ -1,7 +1,8 @@
 """The expected-value estimator at the outer boundary (``estimator="expected"``): at every
-microfacet event on an outer face where leaving is for good (an edge of the outline's convex
-hull), the expected exit of the branch that ends outside is histogrammed over K visible normals
-and the walk goes on (the real exit at that event is not recorded). It must estimate what the
+microfacet event on an outer face, the expected exit of the branch that ends outside and leaves
+the fiber for good (always on an edge of the outline's convex hull; elsewhere where an escape
+ray per normal meets the fiber no more) is histogrammed over K visible normals and the walk
+goes on (the real exit it covers is not recorded). It must estimate what the
 plain estimator estimates bin by bin (with absorption), match the exact smooth circle, keep
 the furnace and lower the variance.
 """
@@ -63,11 +64,12 @@ def test_hull_edges_of_convex_and_concave_loops():
 
 # ---- unbiased against the plain estimator ------------------------------------------------------------
 
-# Rough convex, rough three-lobed silk (its concave sides take the plain estimator), rough
-# cotton (kidney with a lumen: hull faces only, walls crossed inside), smooth three-lobed
-# (deep lobes: hull faces only), smooth circle.
+# Rough convex, rough three-lobed silk (concave sides: an escape ray per normal), rough
+# cotton (kidney with a lumen, walls crossed inside), smooth three-lobed (deep lobes: hull
+# faces only), smooth circle, rough deep three-lobed (much of its light leaves through the
+# concave sides and some of it meets a lobe again).
 CASES = [("circle", 1.2, 0.0, 8.0), ("silk", 0.5, 0.9, 6.5), ("cotton", 0.8, 0.7, 14.0),
-         ("star", 0.3, 2.0, 0.0), ("circle", 0.5, 0.3, 0.0)]
+         ("star", 0.3, 2.0, 0.0), ("circle", 0.5, 0.3, 0.0), ("star", 0.6, 1.1, 8.0)]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -89,10 +91,12 @@ def test_expected_is_unbiased_against_plain(case):
 
 def test_expected_keeps_the_furnace():
     """At zero absorption every photon leaves: the mean exit weight per photon that hit is 1.
+    (The rough deep three-lobed profile catches exits deposited through concave sides without
+    their escape test: 1.047 against 1.0 at 8 x 2^13 photons, a t of about 20.)
     The estimator conserves it on average only (the deposit is an expectation, the real walk's
     exit is dropped), so the mean of 8 batches is compared with 1 by Student's t (7 dofs,
     false failure 1e-4 for each fiber)."""
-    for name, beta in (("cotton", 14.0), ("star", 0.0)):
+    for name, beta in (("cotton", 14.0), ("star", 0.0), ("star", 8.0)):
         res = trace_many(scene(name), [(0.6, 1.1)] * 8, 1 << 13, eta=ETA, beta_deg=beta, seed=list(range(30, 38)),
                          expected=4, histogram=ExitHistogram.for_grid(GRID, [0.0]))
         alb = np.array([r.albedo(0.0) for r in res])

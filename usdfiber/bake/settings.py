@@ -42,9 +42,9 @@ MAX_SPLIT_WALKS = 64
 MAX_EXPECTED_NORMALS = 64
 #: The "expected" estimator's memory in the tracer: its in-kernel histograms of one launch at
 #: most (launches are cut at direction boundaries to stay below), and its queue of events
-#: (2^22 events of 72 bytes).
+#: (2^22 events of 84 bytes).
 EXPECTED_HIST_BYTES = 256 << 20
-EXPECTED_QUEUE_BYTES = (1 << 22) * 72
+EXPECTED_QUEUE_BYTES = (1 << 22) * 84
 
 
 class BakeError(ValueError):

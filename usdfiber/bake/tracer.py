@@ -44,18 +44,20 @@ Fresnel choices at once, inside the kernel. The result then holds several weight
 photon (:attr:`TraceResult.weight`). Its cost and gain: bench/REPORT.md, section 7.
 
 The expected-value estimator at the outer boundary (``expected=K``, extruded fibers): at a
-microfacet event of a walk on an outer face where leaving is for good (an edge of the outline's
-convex hull, :attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line), the
-outcome "the branch that ends outside is taken (reflection on the outside, refraction from the
-material), then the next height step leaves the microsurface" is replaced by its expectation
-w E_m[P_side(m) G_leave(h, wo(m)) 1{settle(wo(m)) in bin}] over the normals m visible from wi,
-estimated with K normals of a randomly shifted rank-1 lattice and histogrammed at every
-absorption level (:class:`ExitHistogram`). The real walk goes on; if it then takes exactly that
-outcome it ends unrecorded (deposit and kill cover the same outcomes, so the estimate is
-unbiased). Events are queued in the loop and their K normals evaluated between phases, on just
-the events (in the loop every lane would pay for them at every iteration). Other faces, normals
+microfacet event of a walk on an outer face, the outcome "the branch that ends outside is taken
+(reflection on the outside, refraction from the material), then the next height step leaves the
+microsurface, then the fiber for good" is replaced by its expectation
+w E_m[P_side(m) G_leave(h, wo(m)) 1{escapes} 1{settle(wo(m)) in bin}] over the normals m
+visible from wi, estimated with K normals of a randomly shifted rank-1 lattice and histogrammed
+at every absorption level (:class:`ExitHistogram`). On an edge of the outline's convex hull
+(:attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line) every exit escapes;
+on the concave sides an escape ray per normal decides, as the real photon's next ray does. The
+real walk goes on; if it then takes exactly that outcome it ends unrecorded (on the concave
+sides: when its next ray escapes), so deposit and kill cover the same outcomes and the estimate
+is unbiased. Events are queued in the loop and their K normals evaluated between phases, on just
+the events (in the loop every lane would pay for them at every iteration). Lumen walls, normals
 seen from below the macro surface and forced walks take the plain estimator: the choice
-depends on the state only. A smooth outer boundary deposits its exiting Fresnel branch with
+depends on the state only. A smooth outer boundary (hull edges only) deposits its exiting Fresnel branch with
 weight w P_out and continues the other with w (1 - P_out) (Russian roulette below
 ``_RR_WEIGHT``). Its cost and gain: bench/REPORT.md, section 7.
 """
@@ -225,9 +227,11 @@ _HIST_BYTES = EXPECTED_HIST_BYTES
 #: Expected-value estimator: most photons per launch at a rough boundary (a phase queues at most
 #: one event per photon and iteration: 2^18 x 8).
 _EV_LANES = 1 << 18
-#: Expected-value estimator: events queued before their normals are evaluated (18 fields of 4
-#: bytes each: 302 MB), or one phase's room if larger (at most _EV_LANES x 8, fewer events).
-_EV_QUEUE = EXPECTED_QUEUE_BYTES // 72
+#: Expected-value estimator: bytes of a queued event (21 fields of 4 bytes).
+_EV_EVENT_BYTES = 84
+#: Expected-value estimator: events queued before their normals are evaluated (352 MB), or one
+#: phase's room if larger (at most _EV_LANES x 8, fewer events).
+_EV_QUEUE = EXPECTED_QUEUE_BYTES // _EV_EVENT_BYTES
 #: The tail of a launch: once at most this many photons are still in flight (rough fibers, no
 #: splitting or expected values), phases last _TAIL_STEPS iterations and a microfacet normal
 #: seen from below the macro surface is drawn inside the loop. Before, every phase drew those
@@ -516,22 +520,24 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     if ev:
         # Expected-value estimator at the outer boundary: the photon's weight (w; smooth
         # boundaries split it between the two Fresnel branches), whether its boundary event is
-        # on a face where leaving is for good (evf: an edge of the outline's convex hull), and
+        # on a face the estimator serves (evf: rough, any outer face; smooth, an edge of the
+        # outline's convex hull), whether leaving through it is for good (evh: a hull edge),
         # whether the branch its walk just took ends outside (evo: then leaving at the next
-        # height step is the outcome whose expectation was deposited).
+        # height step is the outcome whose expectation was deposited) and, off the hull, whether
+        # the photon has just taken that outcome and its next ray decides (evp: if it escapes,
+        # the expectation covered it).
         st["w"] = dr.full(F, 1.0, n)
         st["evf"] = dr.full(B, False, n)
         if rough:
-            st["evo"] = dr.full(B, False, n)
+            st.update({"evo": dr.full(B, False, n), "evh": dr.full(B, False, n), "evp": dr.full(B, False, n)})
         hist_first = int(launch.beam.min()) if n else 0
         hist_n = (int(launch.beam.max()) - hist_first + 1) if n else 1
         nlev, nbin = len(histogram.levels), histogram.n_bins
         hist = dr.zeros(mi.Float64, hist_n * nlev * 2 * nbin)
-        # A copy of the histograms per thread (plain adds, merged after each launch of the
-        # deposit kernel: the queue is flushed rarely) where that fits _HIST_BYTES; float64
-        # atomics (a compare-and-swap loop each, 3-4x slower here) otherwise.
-        hist_mode = (dr.ReduceMode.Expand if dr.width(hist) * 8 * max(dr.thread_count(), 1) <= _HIST_BYTES
-                     else dr.ReduceMode.Direct)
+        # Atomic adds: a deposit's 2 x levels values are adjacent (bin-major histograms), so
+        # they share a few cache lines. Measured on rough silk (2 deg bins, 11 levels, K = 8):
+        # 1.45x faster than per-thread copies of level-major histograms (bench/REPORT.md, s. 7).
+        hist_mode = dr.ReduceMode.Direct
         hist_beam = U(launch.beam.astype(np.uint32) - np.uint32(hist_first))
         lev_o = [dr.opaque(F, float(x)) for x in histogram.levels]
         step_inv = dr.opaque(F, 1.0 / histogram.step)
@@ -554,12 +560,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         row = dr.minimum(row, nth_o - 1)
         col = U(dr.maximum(dr.floor(ph * step_inv), 0.0))
         col = dr.select(col >= nph_o, col - nph_o, col)
-        base = (hb * nlev * 2) * nbin + row * nph_o + col
+        # Bin-major: a deposit's 2 x levels values share a few cache lines (level-major, each
+        # add was a cache miss of its own: 2.2x the deposit kernel's time at 11 levels).
+        base = (hb * nbin + row * nph_o + col) * (nlev * 2)
         for k in range(nlev):
             wk = wt * att[k]
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk), base + (2 * k) * nbin, mask, mode=hist_mode)
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk * L), base + (2 * k + 1) * nbin, mask,
-                              mode=hist_mode)
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk), base + 2 * k, mask, mode=hist_mode)
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk * L), base + (2 * k + 1), mask, mode=hist_mode)
 
     def attenuation(L: Any) -> list:
         """exp(-sigma_k L) of every level, once per event."""
@@ -567,8 +574,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
 
     #: Rough outer events waiting for their expected exits (written by the loop, read between
     #: phases): fields of the state an event needs, one row per event.
-    EV_FIELDS = ("hb", "into", "above", "L", "w", "h", "sg", "r1", "r2", "nx", "ny", "nz", "wx", "wy", "wz",
-                 "gx", "gy", "gz")
+    EV_FIELDS = ("hb", "into", "above", "hull", "L", "w", "h", "sg", "r1", "r2", "nx", "ny", "nz", "wx", "wy", "wz",
+                 "gx", "gy", "gz", "px", "py")
+    EV_UINT = ("hb", "into", "above", "hull")
+    assert 4 * len(EV_FIELDS) == _EV_EVENT_BYTES
     evq: dict[str, Any] = {}
     evq_cap = [0]
 
@@ -598,9 +607,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         """Lanes ``test`` (outside the fiber at ``p``, leaving along ``d``) that never meet it again."""
         if outer_convex:
             return test           # a convex outer surface cannot be met again
+        return escapes_from(p, d, test, (rng.next_float32() - 0.5) * zs_o)
+
+    def escapes_from(p: Any, d: Any, test: Any, zr: Any) -> Any:
+        """:func:`escapes` with the ray cast in the plane ``z = zr`` (extruded fibers: any plane;
+        a random one keeps a crack between two triangles from deciding)."""
         lxy = dr.sqrt(dr.fma(d.x, d.x, d.y * d.y))
         lxy_s = dr.maximum(lxy, 1e-30)
-        zr = (rng.next_float32() - 0.5) * zs_o
         ray = mi.Ray3f(mi.Point3f(p.x, p.y, zr), V3(d.x / lxy_s, d.y / lxy_s, 0.0))
         pi = scene.ray_intersect_preliminary(ray, coherent=False, active=test & (lxy > 1e-7))
         return test & ~(pi.is_valid() & (lxy > 1e-7))
@@ -672,9 +685,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         h_out = dr.select(into, s["h"], -s["h"]) * sg
         r1, r2 = rng.next_float32(), rng.next_float32()
         slot = dr.scatter_inc(evq["count"], U(0), elig)
-        nm, ng = s["nm"], s["ngs"]
+        nm, ng, p = s["nm"], s["ngs"], s["p"]
         vals = (dr.gather(U, hist_beam, s["idx"]), U(dr.select(into, 1, 0)), U(dr.select(above_out, 1, 0)),
-                s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z, ng.x, ng.y, ng.z)
+                U(dr.select(s["evh"], 1, 0)), s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z,
+                ng.x, ng.y, ng.z, p.x, p.y)
         for k, v in zip(EV_FIELDS, vals):
             dr.scatter(evq[k], v, slot, elig)
 
@@ -684,17 +698,20 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         The outcome replaced: the branch that ends outside (reflected on the outside,
         transmitted from the material; probability P_side = F or 1 - F), then leaving at the
         next height step (probability G_leave, at the same height, mirrored across the
-        surface after a refraction) and so the fiber, for good on a hull face. Its expected
-        contribution w E_m[P_side G_leave 1{settle(wo(m)) in bin}], m visible from wi, is
-        estimated with K normals from a randomly shifted rank-1 lattice over the two numbers of
-        the visible-normal sampler (each point uniform: unbiased; the lattice stratifies them),
-        each deposited with weight w P_side G_leave / K.
+        surface after a refraction) and then the fiber for good: always on a hull face, elsewhere
+        where the exit ray meets the fiber no more (a ray cast per normal, as the real photon's
+        next ray decides). Its expected contribution w E_m[P_side G_leave 1{escapes}
+        1{settle(wo(m)) in bin}], m visible from wi, is estimated with K normals from a randomly
+        shifted rank-1 lattice over the two numbers of the visible-normal sampler (each point
+        uniform: unbiased; the lattice stratifies them), each deposited with weight
+        w P_side G_leave / K.
         """
         sel = dr.arange(U, used)
         e = {k: dr.gather(type(evq[k]), evq[k], sel) for k in EV_FIELDS}
-        into, above_out = e["into"] != 0, e["above"] != 0
+        into, above_out, hull = e["into"] != 0, e["above"] != 0, e["hull"] != 0
         frame = mi.Frame3f(V3(e["nx"], e["ny"], e["nz"]))
         wi, ngs, sg = V3(e["wx"], e["wy"], e["wz"]), V3(e["gx"], e["gy"], e["gz"]), e["sg"]
+        p_ev = V3(e["px"], e["py"], 0.0)
         att = attenuation(e["L"])
         valid = dr.full(B, True, used)
         for j in range(ev):
@@ -707,9 +724,15 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             wo = V3(dr.normalize(dr.select(into, wo_r, wo_t)))
             p_side = dr.select(into, F_r, 1.0 - F_r)
             g, _, _ = _escape_probability(dr, F, dr.select(into, wo, -wo), e["h"], alpha_o)
-            d_out, _ = settle(V3(frame.to_world(wo * sg)), ngs, V3(0.0), above_out)
+            d_out, p_out = settle(V3(frame.to_world(wo * sg)), ngs, p_ev, above_out)
             wt = e["w"] * p_side * g * inv_ev
-            deposit_expected(e["hb"], e["L"], valid & (wt > 0.0), d_out, wt, att)
+            live = valid & (wt > 0.0)
+            if not outer_convex:
+                # Off the hull the exit may meet the fiber again: then it is not this outcome.
+                # (Planes spread over the slab, one per normal, as the real rays' random ones.)
+                zr = dr.opaque(F, ((j + 0.5) / ev - 0.5) * 0.8 * zp)
+                live = hull & live | escapes_from(p_out, d_out, ~hull & live, zr)
+            deposit_expected(e["hb"], e["L"], live, d_out, wt, att)
         dr.eval(hist)
 
     def expected_smooth(s: dict, elig: Any, d: Any, nm: Any, inside: Any, rng: Any) -> tuple[Any, Any, Any]:
@@ -767,9 +790,12 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             finish(s, test & (leave | forced))
             if ev:
                 # Leaving now, after a branch that ends outside, is the outcome whose expectation
-                # the event deposited: the photon ends here, unrecorded.
+                # the event deposited: on a hull face the photon ends here, unrecorded; on
+                # another outer face its next ray decides (evp: it ends if it escapes).
                 gone = test & leave & s["evo"]
                 s["evo"] = s["evo"] & ~test
+                s["evp"] = s["evp"] | (gone & ~s["evh"])
+                gone = gone & s["evh"]
                 active = active & ~gone
                 s["w"] = dr.select(gone, 0.0, s["w"])
             cont = s["walking"]                        # still walking: scatter again below
@@ -852,6 +878,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["leaks"] = leaks
         s["hit_any"] = s["hit_any"] | hit
 
+        if ev and rough:
+            # An exit the expected value covered (evp): escaping, it ends unrecorded; meeting the
+            # fiber again, it goes on (a pass-through of a sliver decides nothing yet).
+            covered = escape & s["evp"]
+            s["w"] = dr.select(covered, 0.0, s["w"])
+            s["evp"] = s["evp"] & ~hit & ~escape
+
         over = hit & (s["bounces"] >= maxb)
         s["cut"] = s["cut"] | over
         hit = hit & ~over
@@ -868,8 +901,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["above"] = s["above"] | hit
         s["bounces"] = U(s["bounces"] + dr.select(hit, 1, 0))
         if ev:
-            # Leaving through this face is for good: an outer face on the outline's convex hull.
-            s["evf"] = dr.select(hit, dr.gather(U, fs.hull, pi.prim_index, hit) != 0, s["evf"])
+            # Leaving through a face on the outline's convex hull is for good; a rough walk on
+            # any other outer face deposits what its exit ray shows to leave for good.
+            on_hull = dr.gather(U, fs.hull, pi.prim_index, hit) != 0
+            if rough:
+                s["evh"] = dr.select(hit, on_hull, s["evh"])
+                on_hull = on_hull | (dr.gather(U, outer, pi.prim_index, hit) != 0)
+            s["evf"] = dr.select(hit, on_hull, s["evf"])
         oh = B(False)
         if split:
             # A hit on the outer surface is split.
@@ -1095,7 +1133,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 evq["count"] = dr.zeros(U, 1)
             if not evq or room > evq_cap[0]:
                 evq_cap[0] = max(room, _EV_QUEUE)
-                evq.update({k: dr.empty(U if k in ("hb", "into", "above") else F, evq_cap[0]) for k in EV_FIELDS})
+                evq.update({k: dr.empty(U if k in EV_UINT else F, evq_cap[0]) for k in EV_FIELDS})
                 evq["count"] = dr.zeros(U, 1)
         if split and not rough:
             # A lane deposits at most once per iteration: room for every iteration left to it.
@@ -1164,7 +1202,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     extra: dict[str, Any] = {}
     if ev:
         extra["w"] = np.asarray(out_w.numpy())
-        extra["hist"] = np.asarray(hist.numpy()).reshape(hist_n, nlev, 2, nbin)
+        extra["hist"] = np.ascontiguousarray(np.asarray(hist.numpy()).reshape(hist_n, nbin, nlev, 2).transpose(0, 2, 3, 1))
         extra["hist_first"] = hist_first
     if split:
         extra["w"] = np.asarray(out_w.numpy())

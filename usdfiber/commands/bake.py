@@ -79,6 +79,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-bounces", type=positive_int, default=None, metavar="N",
                    help="interactions before a photon is dropped (default 4096)")
     p.add_argument("--seed", type=seed, default=0, help="random seed, 0 to 2^32 - 1 (default 0)")
+    p.add_argument("--estimator", type=_estimator, default=None, metavar="NAME[,NAME]",
+                   help="variance reduction: plain (default), expected (the exit lobe's expectation at "
+                        "the outer surface; fibers without cuticle scales: 2.7-4x less time than plain at "
+                        "equal error for silk and cotton, 4-7x for polyester), stratified, reciprocity "
+                        "(with --incoming box) or split; combine with commas")
+    p.add_argument("--expected-normals", type=positive_int, default=None, metavar="K",
+                   help="visible normals per outer-surface event of --estimator expected (default 8)")
     p.add_argument("--incoming", choices=("centre", "box"), default="centre",
                    help="light of a table node from the bin centre (default, the paper's) or spread "
                         "over the bin (box: a reciprocal bin-averaged table)")
@@ -120,6 +127,29 @@ def _bound(text: str) -> float:
     return v
 
 
+def _estimator(text: str) -> tuple[str, ...]:
+    """``--estimator``: names separated by commas (``plain`` alone: none)."""
+    names = tuple(n.strip().lower() for n in text.split(",") if n.strip())
+    if not names:
+        raise argparse.ArgumentTypeError("give an estimator name, e.g. expected")
+    return () if names == ("plain",) else names
+
+
+def _refuse_unsupported_estimators(reqs: list, settings) -> str | None:
+    """A one-line error if ``settings`` asks for an estimator that a requested fiber cannot take
+    (the expected value and splitting need fibers without cuticle scales), before any bake."""
+    need = [e for e in ("expected", "split") if e in settings.estimator]
+    if not need:
+        return None
+    for r in reqs:
+        c = r.cuticle
+        if c is not None and float(c[1]) > 0.0:
+            prims = ", ".join(r.prims[:3]) or r.label
+            return (f"--estimator {need[0]} needs fibers without cuticle scales; {r.label} ({prims}) has "
+                    f"them: bake it separately with --estimator plain")
+    return None
+
+
 def _resolution(text: str) -> float | str:
     """``--resolution``: a positive number of degrees or ``auto``."""
     return "auto" if text.strip().lower() == "auto" else positive_float(text)
@@ -146,6 +176,10 @@ def _settings(args: argparse.Namespace):
         kw["batches"] = args.batches
     if args.max_bounces is not None:
         kw["max_bounces"] = args.max_bounces
+    if args.estimator is not None:
+        kw["estimator"] = args.estimator
+    if args.expected_normals is not None:
+        kw["expected_normals"] = args.expected_normals
     try:
         return BakeSettings(**kw)
     except (BakeError, ValueError) as exc:
@@ -317,6 +351,10 @@ def run(args: argparse.Namespace) -> int:
         reqs = _requests(args)
     except StageRefused as exc:
         print(f"usdfiber: error: {exc}", file=sys.stderr)
+        return 1
+    refused = _refuse_unsupported_estimators(reqs, settings)
+    if refused:
+        print(f"usdfiber: error: {refused}", file=sys.stderr)
         return 1
     jobs = _dedupe(reqs, cache, settings)
     if jobs and not args.dry_run:
