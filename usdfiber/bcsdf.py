@@ -82,9 +82,11 @@ def load_table(path: str | os.PathLike[str]) -> BcsdfTable:
 def render_settings_for(request: Any, resolution_deg: float | None = None, photons: int | None = None) -> BakeSettings:
     """The settings of the table ``request`` (a :class:`usdfiber.bake.requests.TableRequest`)
     when a renderer or material writer bakes it on demand: per fiber,
-    :func:`usdfiber.bake.settings.render_bake_settings` for its cross section (round or not);
-    ``resolution_deg`` and ``photons``, when given, for every fiber."""
-    return render_bake_settings(is_rotationally_symmetric(request.profile()), resolution_deg, photons)
+    :func:`usdfiber.bake.settings.render_bake_settings` for its cross section (round or not)
+    and cuticle scales; ``resolution_deg`` and ``photons``, when given, for every fiber."""
+    cut = request.cuticle
+    return render_bake_settings(is_rotationally_symmetric(request.profile()), resolution_deg, photons,
+                                cuticle_scales=cut is not None and float(cut[1]) > 0.0)
 
 
 def tables_for_prim(prim: Any, settings: BakeSettings | Callable[[Any], BakeSettings] | None = None,

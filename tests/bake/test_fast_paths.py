@@ -116,3 +116,20 @@ def test_tail_phases_trace_the_same_photons(silk_scene, monkeypatch):
         np.testing.assert_array_equal(a.path_length, b.path_length)
         np.testing.assert_array_equal(a.cut, b.cut)
         np.testing.assert_array_equal(a.bounces, b.bounces)
+
+
+def test_tail_phases_give_the_same_expected_values(silk_scene, monkeypatch):
+    """With the expected-value estimator too: the same exits and the same in-kernel histograms
+    (up to the order of float64 additions) whether the tail phases start at once or never."""
+    hb = tracer.ExitHistogram.for_grid(Grid(6.0), [0.0, 0.05])
+    kw = dict(eta=ETA, beta_deg=15.0, max_bounces=4096, seed=7, expected=4, histogram=hb)
+    dirs = [(1.45, 0.3), (0.6, 2.0)]
+    monkeypatch.setattr(tracer, "_TAIL_LANES", -1)
+    never = tracer.trace_many(silk_scene, dirs, 4000, **kw)
+    monkeypatch.setattr(tracer, "_TAIL_LANES", 1 << 30)
+    always = tracer.trace_many(silk_scene, dirs, 4000, **kw)
+    for a, b in zip(never, always):
+        assert a.n_hit == b.n_hit and a.histogram.sum() > 0
+        np.testing.assert_array_equal(a.directions, b.directions)
+        np.testing.assert_array_equal(a.exit_weights(), b.exit_weights())
+        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-12, atol=1e-15)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from usdfiber.bake.requests import requests_from_preset
-from usdfiber.bake.settings import RENDER_BAKE_SETTINGS, BakeError, BakeSettings
+from usdfiber.bake.settings import RENDER_BAKE_SETTINGS, RENDER_EXPECTED_SETTINGS, BakeError, BakeSettings
 from usdfiber.bcsdf import render_settings_for
 from usdfiber.translators.mitsuba.scene import SceneOptions, bake_settings_for, render_bake
 
@@ -14,7 +14,9 @@ def test_default_is_per_fiber() -> None:
     assert SceneOptions().bake is render_settings_for is render_bake()
     poly, silk = requests_from_preset("polyester")[0], requests_from_preset("silk")[0]
     assert bake_settings_for(render_bake(), poly).resolution_deg == 2.0
-    assert bake_settings_for(render_bake(), silk) == RENDER_BAKE_SETTINGS
+    assert bake_settings_for(render_bake(), silk) == RENDER_EXPECTED_SETTINGS
+    wool = requests_from_preset("wool")[0]
+    assert bake_settings_for(render_bake(), wool) == RENDER_BAKE_SETTINGS
 
 
 def test_overrides_and_fixed_settings() -> None:

@@ -15,7 +15,7 @@ from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
 __all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_HIST_BYTES", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
-           "RENDER_BAKE_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
+           "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
            "render_bake_settings"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
@@ -241,17 +241,25 @@ def directions_per_group(settings: BakeSettings) -> int:
 
 
 #: Bake settings for tables baked on demand by a renderer bridge or a material writer, for
-#: fibers whose cross section is not round: a 6 degree grid (renderers interpolate between
-#: bins) and 100k photons per incoming direction (2.5-7 % relative L2 error per direction, rms
-#: over the table, for the presets: bench/REPORT.md, "grouping"). Round fibers get finer
-#: tables: :func:`render_bake_settings`. `usdfiber bake` makes the paper's 2 degree tables.
+#: fibers whose cross section is not round and that have cuticle scales: a 6 degree grid
+#: (renderers interpolate between bins) and 100k photons per incoming direction (2.5-7 %
+#: relative L2 error per direction, rms over the table, for the presets: bench/REPORT.md,
+#: "grouping"). Fibers without cuticle scales get the expected-value estimator instead
+#: (:data:`RENDER_EXPECTED_SETTINGS`) and round fibers finer tables: :func:`render_bake_settings`.
+#: `usdfiber bake` makes the paper's 2 degree tables.
 RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
+#: The render's tables of fibers without cuticle scales: the expected-value estimator with 8
+#: normals at 15k photons per direction. Measured on whole bakes (bench/REPORT.md, section 7,
+#: "whole bakes"), these reach a lower error than 100k plain photons in less time (a silk variant
+#: at 6 degrees, polyester at 2).
+RENDER_EXPECTED_SETTINGS = replace(RENDER_BAKE_SETTINGS, photons=15_000, estimator=("expected",),
+                                   expected_normals=8)
 #: Bins and incoming nodes of the tables a renderer bakes on demand for round fibers.
 ROUND_RENDER_RESOLUTION_DEG = 2.0
 
 
 def render_bake_settings(round_profile: bool, resolution_deg: float | None = None,
-                         photons: int | None = None) -> BakeSettings:
+                         photons: int | None = None, cuticle_scales: bool = False) -> BakeSettings:
     """The settings of a table that a renderer or material writer bakes on demand for a fiber
     whose cross section is round (rotationally symmetric, as the baker tests it) or not,
     chosen per fiber by the error of close-up renders against finer tables (bench/REPORT.md,
@@ -263,11 +271,15 @@ def render_bake_settings(round_profile: bool, resolution_deg: float | None = Non
     blocks, 3.8x the noise between two render seeds): such fibers get
     :data:`usdfiber.bake.settings.ROUND_RENDER_RESOLUTION_DEG`. Other fibers trace every azimuth (900 directions at 6
     degrees, 8,100 at 2), and silk's wider lobes lose a few percent of the highlight to 5-6
-    degree bins: they get :data:`usdfiber.bake.settings.RENDER_BAKE_SETTINGS`. ``resolution_deg`` and
-    ``photons``, when given, override the choice for every fiber (``--bake-resolution``,
-    ``--bake-photons``).
+    degree bins: they get :data:`usdfiber.bake.settings.RENDER_BAKE_SETTINGS`'s grid. Fibers
+    without cuticle scales are baked with the expected-value estimator at fewer photons
+    (:data:`usdfiber.bake.settings.RENDER_EXPECTED_SETTINGS`: a lower error in less time);
+    fibers with ``cuticle_scales``, which it cannot take, with the plain estimator.
+    ``resolution_deg`` and ``photons``, when given, override the choice for every fiber
+    (``--bake-resolution``, ``--bake-photons``); given photons are plain photons (a bake's time
+    follows them as before, and tables baked with them before keep their keys).
     """
-    st = RENDER_BAKE_SETTINGS
+    st = RENDER_BAKE_SETTINGS if cuticle_scales or photons is not None else RENDER_EXPECTED_SETTINGS
     if resolution_deg is not None:
         st = replace(st, resolution_deg=float(resolution_deg), incoming_deg=None)
     elif round_profile:

@@ -233,7 +233,7 @@ _EV_EVENT_BYTES = 84
 #: phase's room if larger (at most _EV_LANES x 8, fewer events).
 _EV_QUEUE = EXPECTED_QUEUE_BYTES // _EV_EVENT_BYTES
 #: The tail of a launch: once at most this many photons are still in flight (rough fibers, no
-#: splitting or expected values), phases last _TAIL_STEPS iterations and a microfacet normal
+#: splitting), phases last _TAIL_STEPS iterations and a microfacet normal
 #: seen from below the macro surface is drawn inside the loop. Before, every phase drew those
 #: normals between phases, so a photon in a long grazing walk (one such normal per event) took a
 #: phase per event: hundreds of phases, each recorded and launched anew, for one photon
@@ -420,7 +420,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
     the macro surface are drawn by the exact float64 inversion on just those lanes. Once at
-    most ``_TAIL_LANES`` photons are left (rough fibers, no splitting or expected values),
+    most ``_TAIL_LANES`` photons are left (rough fibers, no splitting),
     phases last ``_TAIL_STEPS`` iterations and those normals are drawn in the loop instead,
     with the same inputs and arithmetic: a photon's path does not depend on the phases. Directions
     and seeds are data, not literals, so one compiled kernel serves every direction and batch,
@@ -1176,7 +1176,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         act = st["active"]
         n_act = int(dr.count(act)[0])
         size = dr.width(act)
-        tail[0] = tail[0] or (rough and mode == "symbolic" and not split and not ev and n_act <= _TAIL_LANES)
+        tail[0] = tail[0] or (rough and mode == "symbolic" and not split and n_act <= _TAIL_LANES)
         if n_act == 0 or n_act < size // 2:
             # Write every lane's current outcome (finished lanes are final), then keep the rest.
             dr.scatter(out_d, st["d"], st["idx"])

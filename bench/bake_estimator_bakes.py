@@ -1,0 +1,93 @@
+"""Benchmark: whole table bakes with the plain and the expected-value estimator, side by side.
+
+The per-direction comparison of ``bake_estimators.py`` times one direction per call; a bake
+traces many directions per launch, with the baker's grouping, tail phases and binning. This
+bakes real tables of a preset's first cross-section variant through the cache, alternating the
+two estimators, and reports each bake's process CPU time and the table's own error estimate
+(the spread of its independent batches, relative L2 of p per direction: rms, 95th percentile
+and max over the directions). gain = (cpu_plain x e_plain^2) / (cpu_expected x e_expected^2)
+for the rms and for the max.
+
+    python bench/bake_estimator_bakes.py --out bench/results/estimator_bakes.json
+    python bench/bake_estimator_bakes.py --cases silk:15:100000:15000 --rounds 1 --out /tmp/x.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bake_common import Record  # noqa: E402
+
+
+def bake(fiber: str, resolution: float, photons: int, expected: int, root: str) -> dict:
+    """One bake of the preset's first variant into an empty cache under ``root``."""
+    from usdfiber.bake.cache import TableCache
+    from usdfiber.bake.requests import requests_from_preset
+    from usdfiber.bake.settings import BakeSettings
+
+    kw: dict = dict(resolution_deg=resolution, photons=photons, batches=4)
+    if expected:
+        kw.update(estimator=("expected",), expected_normals=expected)
+    req = requests_from_preset(fiber)[0]
+    c0, w0 = time.process_time(), time.perf_counter()
+    res = TableCache(tempfile.mkdtemp(dir=root)).get_or_bake(req, BakeSettings(**kw))
+    cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    rel = np.asarray(res.table.arrays["rel_error"], dtype=np.float64).ravel()
+    rel = rel[np.isfinite(rel) & (rel > 0)]
+    return {"fiber": fiber, "resolution_deg": resolution, "photons": photons, "expected_normals": expected,
+            "cpu": cpu, "wall": wall, "rel_rms": float(np.sqrt(np.mean(rel ** 2))),
+            "rel_p95": float(np.percentile(rel, 95)), "rel_max": float(rel.max()), "directions": int(rel.size)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="polyester:2:100000:15000,silk:15:100000:15000,silk:6:100000:15000",
+                    help="FIBER:RESOLUTION:PLAIN_PHOTONS:EXPECTED_PHOTONS, comma separated")
+    ap.add_argument("--normals", type=int, default=8, help="K of the expected-value estimator")
+    ap.add_argument("--rounds", type=int, default=1, help="alternating rounds of the two bakes")
+    ap.add_argument("--out", default="bench/results/estimator_bakes.json")
+    args = ap.parse_args()
+    rec = Record("estimator_bakes", args)
+    rows = []
+    with tempfile.TemporaryDirectory() as root:
+        bake("polyester", 30.0, 1000, 0, root)                    # compile the kernels first
+        bake("polyester", 30.0, 1000, args.normals, root)
+        for case in args.cases.split(","):
+            fiber, res, n_plain, n_ev = case.split(":")
+            for r in range(args.rounds):
+                for k, n in ((0, int(n_plain)), (args.normals, int(n_ev))):
+                    row = bake(fiber, float(res), n, k, root)
+                    row["round"] = r
+                    row["load"] = [round(x, 2) for x in os.getloadavg()]
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
+    out = []
+    for case in args.cases.split(","):
+        fiber, res, _, _ = case.split(":")
+        sel = [x for x in rows if x["fiber"] == fiber and x["resolution_deg"] == float(res)]
+        p = [x for x in sel if not x["expected_normals"]]
+        e = [x for x in sel if x["expected_normals"]]
+        cp, ce = float(np.median([x["cpu"] for x in p])), float(np.median([x["cpu"] for x in e]))
+        summary = {"fiber": fiber, "resolution_deg": float(res), "cpu_plain": cp, "cpu_expected": ce,
+                   "rel_rms_plain": p[0]["rel_rms"], "rel_rms_expected": e[0]["rel_rms"],
+                   "rel_max_plain": p[0]["rel_max"], "rel_max_expected": e[0]["rel_max"],
+                   "gain_rms": cp * p[0]["rel_rms"] ** 2 / (ce * e[0]["rel_rms"] ** 2),
+                   "gain_max": cp * p[0]["rel_max"] ** 2 / (ce * e[0]["rel_max"] ** 2)}
+        out.append(summary)
+        print(f"{fiber} {res} deg: plain {cp:.1f} s cpu at {100 * summary['rel_rms_plain']:.2f} % rms; expected "
+              f"{ce:.1f} s at {100 * summary['rel_rms_expected']:.2f} %; gain {summary['gain_rms']:.2f} (rms), "
+              f"{summary['gain_max']:.2f} (max)", flush=True)
+    rec.doc["results"] = {"bakes": rows, "summary": out}
+    rec.finish(Path(args.out))
+
+
+if __name__ == "__main__":
+    main()
