@@ -1,21 +1,25 @@
 """Benchmark: recolouring in the Dr.Jit kernel against the float64 numpy path, up to full 2 deg tables.
 
     python bench/bake_recolour_kernel.py [--quick]
-    python bench/bake_recolour_kernel.py --versus REV [--res 2] [--repeats 3]
+    python bench/bake_recolour_kernel.py --versus REV [--res 2] [--paths levels,basis] [--colours 5]
+                                         [--codes old,new]
 
 Writes ``bench/results/recolour_kernel.json`` (``--out`` names another file); what it records and
 the error metrics: :mod:`bake_common`. ``--versus REV`` times the kernels of
 ``usdfiber/bake/recolour.py`` at git revision ``REV`` and the working tree's side by side on one
 table with the real layout (both paths: the levels and a rank-6 absorption basis), interleaved
 (old, new, old, new, ...) so that both see the same load, and records wall and CPU seconds, the
-time of every kernel (``dr.kernel_history()``) and the largest difference between the two
-(``recolour_kernel_versus.json``).
+time of every kernel (``dr.kernel_history()``), the page faults of every call, the process's
+peak memory after each path and the largest difference between the two
+(``recolour_kernel_versus.json``). ``--codes new`` (or ``old``) times one of them alone: its
+peak memory without the other's.
 """
 from __future__ import annotations
 
 import argparse
 import gc
 import importlib.util
+import resource
 import subprocess
 import sys
 import tempfile
@@ -113,19 +117,26 @@ def _module_at(rev: str):
     return mod
 
 
+def _peak_rss_gib() -> float:
+    """The process's peak resident memory so far (GiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
 def _timed(fn) -> dict[str, Any]:
-    """Wall and CPU seconds of ``fn()`` and the seconds of each kernel it launched."""
+    """Wall and CPU seconds of ``fn()``, its page faults and the seconds of each kernel it launched."""
     import drjit as dr
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()                                # clears the history
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     with Timer() as t:
         out = fn()
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults
     kernels = [(round(k["execution_time"] / 1e3, 4), int(k["size"])) for k in dr.kernel_history()
                if k.get("execution_time", 0) > 0.5]
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     return {"wall": t.wall, "cpu": t.cpu, "cores": t.cores, "kernels_s": kernels,
-            "kernel_total_s": sum(k for k, _ in kernels)}, out
+            "kernel_total_s": sum(k for k, _ in kernels), "page_faults": faults}, out
 
 
 def cmd_versus(args: argparse.Namespace) -> int:
@@ -138,6 +149,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
     old = _module_at(args.versus)
     rec = Record("recolour_kernel_versus", args)
     paths = args.paths.split(",")
+    codes = [c for c in ("old", "new") if c in args.codes.split(",")]
     # The levels (5.3 GB at 2 deg) only where that path is timed; the basis path needs the layout.
     syn = synthetic_table(args.res if "levels" in paths else 30.0, True, 83)
     g = Grid(args.res, True, False)
@@ -149,17 +161,22 @@ def cmd_versus(args: argparse.Namespace) -> int:
         p, lb = a["p"].reshape(n, K, B, n_po), a["lbar"].reshape(n, K, B, n_po)
         scale = (a["p_scale"].astype(np.float64) * a["albedo"]).reshape(n, K)
     R = 6
-    rng = np.random.default_rng(1)
-    basis = np.empty((n, R, B, n_po), np.float16)
-    for d0 in range(0, n, 256):
-        basis[d0:d0 + 256] = rng.standard_normal((min(256, n - d0), R, B, n_po), dtype=np.float32)
-    basis[:, 0] = np.abs(basis[:, 0]) + 2.0             # a positive leading component
+
+    def make_basis() -> np.ndarray:
+        rng = np.random.default_rng(1)
+        basis = np.empty((n, R, B, n_po), np.float16)
+        for d0 in range(0, n, 256):
+            basis[d0:d0 + 256] = rng.standard_normal((min(256, n - d0), R, B, n_po), dtype=np.float32)
+        basis[:, 0] = np.abs(basis[:, 0]) + 2.0         # a positive leading component
+        return basis
+
     rgbs = [(0.3, 1.1, 4.0), (0.41, 1.5, 5.5), (0.05, 0.6, 2.5), (1.5, 3.0, 9.0), (0.2, 0.9, 3.3)][:args.colours]
     facts = {"table": f"{args.res:g} deg, extruded (silk/cotton) layout, band {B}", "directions": n,
              "bins_per_channel": n * B * n_po, "levels_bytes": 4 * n * K * B * n_po, "basis_rank": R,
-             "basis_bytes": basis.nbytes}
+             "basis_bytes": 2 * n * R * B * n_po, "codes": codes}
     runs: list[dict[str, Any]] = []
     diffs = {"levels": 0.0, "basis": 0.0}
+    peak: dict[str, float] = {"before_paths": _peak_rss_gib()}
 
     def levels(mod, rgb):
         return mod.recolour_p(p, lb, scale, dom, syn.levels, rgb)
@@ -170,9 +187,14 @@ def cmd_versus(args: argparse.Namespace) -> int:
         return mod.recolour_basis(basis, coef, dom)
 
     for path, fn in [(q, f) for q, f in (("levels", levels), ("basis", basis_path)) if q in paths]:
+        if path == "basis":
+            p = lb = syn = a = None                    # the levels' memory back before the basis's
+            gc.collect()
+            basis = make_basis()
         for k, rgb in enumerate(rgbs):                 # the first colour warms up (compiles) each
             outs = {}
-            for name, mod in (("old", old), ("new", new)) if k % 2 == 0 else (("new", new), ("old", old)):
+            order = [(c, {"old": old, "new": new}[c]) for c in codes]
+            for name, mod in order if k % 2 == 0 else order[::-1]:
                 rng_c = np.random.default_rng(k)
                 la = os.getloadavg()[0]
                 r, out = _timed(lambda: fn(mod, rgb))
@@ -181,21 +203,25 @@ def cmd_versus(args: argparse.Namespace) -> int:
                 runs.append({"path": path, "code": name, "rgb": rgb, "warm": k > 0, "load_1min": la, **r})
                 print(f"{path} {name} {rgb}: wall {r['wall']:.3f} s, cpu {r['cpu']:.3f} s, "
                       f"kernels {r['kernel_total_s']:.3f} s {r['kernels_s']}, load {la:.1f}", flush=True)
-            ref = outs["old"]
-            big = ref > 1e-6 * ref.max()
-            diffs[path] = max(diffs[path], float((np.abs(outs["new"] - ref)[big] / ref[big]).max()))
-            del outs, ref, big
+            if len(outs) == 2:
+                ref = outs["old"]
+                big = ref > 1e-6 * ref.max()
+                diffs[path] = max(diffs[path], float((np.abs(outs["new"] - ref)[big] / ref[big]).max()))
+                del ref, big
+            del outs
             gc.collect()
+        peak[f"after_{path}"] = _peak_rss_gib()
     summary = {}
     for path in paths:
-        for name in ("old", "new"):
+        for name in codes:
             w = [r for r in runs if r["path"] == path and r["code"] == name and r["warm"]]
             summary[f"{path}_{name}"] = {q: float(np.median([r[q] for r in w]))
                                          for q in ("wall", "cpu", "kernel_total_s", "load_1min")}
-        o, nw = summary[f"{path}_old"], summary[f"{path}_new"]
-        summary[f"{path}_ratio_new_over_old"] = {q: nw[q] / o[q] for q in ("wall", "cpu", "kernel_total_s")}
+        if len(codes) == 2:
+            o, nw = summary[f"{path}_old"], summary[f"{path}_new"]
+            summary[f"{path}_ratio_new_over_old"] = {q: nw[q] / o[q] for q in ("wall", "cpu", "kernel_total_s")}
     rec.doc["results"] = {"facts": facts, "versus": args.versus, "runs": runs, "median_warm": summary,
-                          "max_rel_diff_new_vs_old": diffs}
+                          "max_rel_diff_new_vs_old": diffs, "peak_rss_gib": peak}
     print(json.dumps(summary, indent=1), flush=True)
     rec.finish(results_path(args, "recolour_kernel_versus"))
     return 0
@@ -207,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--res", type=float, default=2.0, help="bin size of the --versus table (deg)")
     ap.add_argument("--paths", default="levels,basis", help="the --versus paths timed (levels, basis)")
     ap.add_argument("--colours", type=int, default=5, help="RGB colours per --versus path (the first warms up)")
+    ap.add_argument("--codes", default="old,new", help="the --versus codes timed (old, new; one alone: its peak memory)")
     args = ap.parse_args(argv)
     return cmd_versus(args) if args.versus else cmd_recolour_kernel(args)
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from usdfiber.bake import recolour as kernel_mod
-from usdfiber.bake.absorption import DEFAULT_LEVELS
+from usdfiber.bake.absorption import DEFAULT_LEVELS, log_interpolate
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.storage import LAYOUT, LAYOUT_VERSION
 from usdfiber.bake.table import BcsdfTable
@@ -159,3 +159,73 @@ def test_channels_of_one_launch_equal_separate_launches(seed):
         np.testing.assert_array_equal(together[..., c], alone, err_msg=f"channel {c} (sigma {s})")
         assert_same(together[..., c].reshape(n_ti, n_pi, B, n_po, 1), t._p_reference(s)[..., None],
                     f"sigma {s}")
+
+
+def reference_p(p, lb, scale, dom, levels, s) -> np.ndarray:
+    """recolour_p's arguments -> the float64 reference (the arithmetic of BcsdfTable._p_reference)
+    for one absorption, (n_dir, B, n_po, 1)."""
+    lv = np.asarray(levels, dtype=np.float64)
+    F = log_interpolate(lv, s, lambda k: p[:, k].astype(np.float64) * scale[:, k, None, None] * dom[:, :, None],
+                        lambda k: lb[:, k].astype(np.float64))
+    tot = F.sum(axis=(-2, -1), keepdims=True)
+    return (np.where(tot > 0, F / np.where(tot > 0, tot, 1.0), 0.0) / dom[:, :, None])[..., None]
+
+
+def flat_args(t: BcsdfTable):
+    n_ti, n_pi, K, B, n_po = t.arrays["p"].shape
+    n = n_ti * n_pi
+    return (t.arrays["p"].reshape(n, K, B, n_po), t.arrays["lbar"].reshape(n, K, B, n_po),
+            (t.arrays["p_scale"].astype(np.float64) * t.arrays["albedo"]).reshape(n, K),
+            t.domega_band().reshape(n, B), t.levels)
+
+
+@pytest.mark.parametrize("B, n_po", [(3, 5), (3, 6), (5, 12)])
+def test_layouts_of_every_packet_size_equal_the_reference(B, n_po):
+    """A lane takes 4 consecutive bins where a direction's bins divide by 4, else 2, else 1
+    (B x n_po = 15, 18, 60 here): each equals the float64 reference."""
+    t = synthetic(8)
+    p, lb, scale, dom, levels = flat_args(t)
+    p, lb = np.ascontiguousarray(p[:, :, :B, :n_po]), np.ascontiguousarray(lb[:, :, :B, :n_po])
+    dom = np.ascontiguousarray(dom[:, :B])
+    assert kernel_mod._packet(B * n_po, p, lb) == {15: 1, 18: 2, 60: 4}[B * n_po]
+    for s in (0.0, 0.3, 2.7, 64.0, 100.0):
+        kern = kernel_mod.recolour_p(p, lb, scale, dom, levels, [s])
+        assert_same(kern, reference_p(p, lb, scale, dom, levels, s), f"B {B}, n_po {n_po}, sigma {s}")
+
+
+@pytest.mark.parametrize("G", [2, 4])
+def test_packet_sizes_give_the_same_values(monkeypatch, G):
+    """Lanes of 2 or 4 bins compute each bin as lanes of 1 do: the same values, bit for bit,
+    for the levels and for a compressed basis."""
+    t = synthetic(9)
+    args = flat_args(t)
+    sig = [0.0, 0.3, 2.7, 100.0]
+    rng = np.random.default_rng(2)
+    n, _, B, n_po = args[0].shape
+    basis = rng.standard_normal((n, 4, B, n_po)).astype(np.float16)
+    coef = rng.standard_normal((n, 3, 4)).astype(np.float32)
+    assert B * n_po % 4 == 0
+    monkeypatch.setattr(kernel_mod, "_packet", lambda BP, *arrays: 1)
+    one = kernel_mod.recolour_p(*args, sig).copy(), kernel_mod.recolour_basis(basis, coef, args[3]).copy()
+    monkeypatch.setattr(kernel_mod, "_packet", lambda BP, *arrays: G)
+    np.testing.assert_array_equal(kernel_mod.recolour_p(*args, sig), one[0])
+    np.testing.assert_array_equal(kernel_mod.recolour_basis(basis, coef, args[3]), one[1])
+
+
+def test_a_result_beyond_one_array_is_written_launch_by_launch(monkeypatch):
+    """A result longer than one Dr.Jit array is normalized launch by launch and copied into
+    place: the same table as one array written by several launches, and as one launch."""
+    t = synthetic(10)
+    p, lb, scale, dom, levels = flat_args(t)
+    n, K, B, n_po = p.shape
+    # Solid angles that differ between directions: a launch normalized with another's fails.
+    dom = dom * (1.0 + 0.5 * np.sin(np.arange(n)[:, None] + 2.0 * np.arange(B)))
+    args = (p, lb, scale, dom, levels)
+    sig = (0.3, 5.0, 90.0)
+    whole = kernel_mod.recolour_p(*args, sig).copy()
+    monkeypatch.setattr(kernel_mod, "_MAX_ELEMENTS", 7 * K * B * n_po)       # launches of 7 directions
+    np.testing.assert_array_equal(kernel_mod.recolour_p(*args, sig), whole)
+    monkeypatch.setattr(kernel_mod, "_MAX_OUTPUT", 3 * n * B * n_po)         # and no whole array
+    parts = kernel_mod.recolour_p(*args, sig)
+    np.testing.assert_array_equal(parts, whole)
+    assert_same(parts[..., 1:2], reference_p(*args, 5.0), "launch by launch")
