@@ -84,9 +84,8 @@ def render_settings_for(request: Any, resolution_deg: float | None = None, photo
     when a renderer or material writer bakes it on demand: per fiber,
     :func:`usdfiber.bake.settings.render_bake_settings` for its cross section (round or not)
     and cuticle scales; ``resolution_deg`` and ``photons``, when given, for every fiber."""
-    cut = request.cuticle
     return render_bake_settings(is_rotationally_symmetric(request.profile()), resolution_deg, photons,
-                                cuticle_scales=cut is not None and float(cut[1]) > 0.0)
+                                cuticle_scales=request.cuticle_scales is not None)
 
 
 def tables_for_prim(prim: Any, settings: BakeSettings | Callable[[Any], BakeSettings] | None = None,

@@ -417,9 +417,7 @@ def _request_inputs(request: TableRequest) -> tuple[Any, float, float, tuple[flo
         raise BakeError(f"eta must be >= 1, got {eta}")
     if not (math.isfinite(beta_deg) and 0.0 <= beta_deg < 90.0):
         raise BakeError(f"beta must be in [0, 90) degrees, got {beta_deg}")
-    c = request.cuticle
-    cut = (float(c[0]), float(c[1]), float(c[2])) if c is not None and float(c[1]) > 0.0 else None
-    return request.profile(), eta, beta_deg, cut
+    return request.profile(), eta, beta_deg, request.cuticle_scales
 
 
 def table_directions(request: TableRequest, settings: BakeSettings) -> list[tuple[int, int]]:

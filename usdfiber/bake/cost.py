@@ -229,8 +229,7 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
     from usdfiber.bake.storage import write_table_file
 
     t_start = time.perf_counter()
-    profile, c = request.profile(), request.cuticle
-    cut = (float(c[0]), float(c[1]), float(c[2])) if c is not None and float(c[1]) > 0.0 else None
+    profile, cut = request.profile(), request.cuticle_scales
     eta, beta = request.eta, request.beta_deg
     ctx_big = bake_context(profile, eta, beta, cut, replace(settings, photons=n, target_error=None))
     dirs_all = table_directions(request, settings)

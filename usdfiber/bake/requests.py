@@ -120,6 +120,12 @@ class TableRequest:
             return None
         return (float(c["tilt"]), float(c["height_rel"]), float(c["spacing_rel"]))
 
+    @property
+    def cuticle_scales(self) -> tuple[float, float, float] | None:
+        """:attr:`cuticle` where its scales have a height (what the baker traces), else None."""
+        c = self.cuticle
+        return c if c is not None and c[1] > 0.0 else None
+
     def profile(self) -> Any:
         """The cross section traced, at circumscribed diameter 1 um."""
         return profile_for(self.params, self.variant)

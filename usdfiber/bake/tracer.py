@@ -507,10 +507,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     # Leaving for good without a ray cast: a boundary result that ends outside the fiber on a face
     # of the outline's convex hull (the whole fiber lies behind that face's line) has nothing left
     # to meet, so the photon escapes there instead of in one more iteration whose cast must miss.
-    # The walk's boundary event is on such a face: state hull (evh with expected values).
+    # Whether a walk's boundary event is on such a face: state hull (also read by the expected
+    # value, which needs an extruded fiber).
     hull_esc = z_inv
-    hull_key = "evh" if ev else "hull"
-    if z_inv and rough and not ev:
+    if z_inv and rough:
         st["hull"] = dr.full(B, False, n)
     if rough:
         # A walk's leaving test comes at the end of the iteration of its microfacet event (it used to
@@ -534,16 +534,15 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     if ev:
         # Expected-value estimator at the outer boundary: the photon's weight (w; smooth
         # boundaries split it between the two Fresnel branches), whether its boundary event is
-        # on a face the estimator serves (evf: rough, any outer face; smooth, an edge of the
-        # outline's convex hull), whether leaving through it is for good (evh: a hull edge),
-        # whether the branch its walk just took ends outside (evo: then leaving at the next
+        # on a face the estimator serves (evf: rough, any outer face, where leaving is for good
+        # on a hull edge, state hull; smooth, an edge of the outline's convex hull), whether the branch its walk just took ends outside (evo: then leaving at the next
         # height step is the outcome whose expectation was deposited) and, off the hull, whether
         # the photon has just taken that outcome and its next ray decides (evp: if it escapes,
         # the expectation covered it).
         st["w"] = dr.full(F, 1.0, n)
         st["evf"] = dr.full(B, False, n)
         if rough:
-            st.update({"evo": dr.full(B, False, n), "evh": dr.full(B, False, n), "evp": dr.full(B, False, n)})
+            st.update({"evo": dr.full(B, False, n), "evp": dr.full(B, False, n)})
         hist_first = int(launch.beam.min()) if n else 0
         hist_n = (int(launch.beam.max()) - hist_first + 1) if n else 1
         nlev, nbin = len(histogram.levels), histogram.n_bins
@@ -701,7 +700,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         slot = dr.scatter_inc(evq["count"], U(0), elig)
         nm, ng, p = s["nm"], s["ngs"], s["p"]
         vals = (dr.gather(U, hist_beam, s["idx"]), U(dr.select(into, 1, 0)), U(dr.select(above_out, 1, 0)),
-                U(dr.select(s["evh"], 1, 0)), s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z,
+                U(dr.select(s["hull"], 1, 0)), s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z,
                 ng.x, ng.y, ng.z, p.x, p.y)
         for k, v in zip(EV_FIELDS, vals):
             dr.scatter(evq[k], v, slot, elig)
@@ -744,7 +743,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             if not outer_convex:
                 # Off the hull the exit may meet the fiber again: then it is not this outcome.
                 # (Planes spread over the slab, one per normal, as the real rays' random ones.)
-                zr = dr.opaque(F, ((j + 0.5) / ev - 0.5) * 0.8 * zp)
+                zr = zs_o * ((j + 0.5) / ev - 0.5)
                 live = hull & live | escapes_from(p_out, d_out, ~hull & live, zr)
             deposit_expected(e["hb"], e["L"], live, d_out, wt, att)
         dr.eval(hist)
@@ -902,19 +901,16 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         s["nm"] = dr.select(hit, nm, s["nm"])
         s["above"] = s["above"] | hit
         s["bounces"] = U(s["bounces"] + dr.select(hit, 1, 0))
-        if ev:
-            # Leaving through a face on the outline's convex hull is for good; a rough walk on
-            # any other outer face deposits what its exit ray shows to leave for good.
+        if hull_esc:
+            # Leaving through a face on the outline's convex hull is for good (see hull_esc).
             on_hull = dr.gather(U, fs.hull, pi.prim_index, hit) != 0
             if rough:
-                s["evh"] = dr.select(hit, on_hull, s["evh"])
-                on_hull = on_hull | (dr.gather(U, outer, pi.prim_index, hit) != 0)
-            s["evf"] = dr.select(hit, on_hull, s["evf"])
-        if hull_esc:
-            # The same for the escape without a ray cast (see hull_esc).
-            on_hull = s["evf"] if ev and not rough else dr.gather(U, fs.hull, pi.prim_index, hit) != 0
-            if rough and not ev:
                 s["hull"] = dr.select(hit, on_hull, s["hull"])
+        if ev:
+            # The expected value serves hull faces and, on a rough walk, any other outer face
+            # (what its exit ray shows to leave for good).
+            served = on_hull | (dr.gather(U, outer, pi.prim_index, hit) != 0) if rough else on_hull
+            s["evf"] = dr.select(hit, served, s["evf"])
         oh = B(False)
         if split:
             # A hit on the outer surface is split.
@@ -1011,12 +1007,12 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 # another outer face its next ray decides (evp: it ends if it escapes).
                 gone = test & leave & s["evo"]
                 s["evo"] = s["evo"] & ~test
-                s["evp"] = s["evp"] | (gone & ~s["evh"])
-                gone = gone & s["evh"]
+                s["evp"] = s["evp"] | (gone & ~s["hull"])
+                gone = gone & s["hull"]
                 active = active & ~gone
                 s["w"] = dr.select(gone, 0.0, s["w"])
             if hull_esc:
-                active = active & ~(fin & s[hull_key] & ~s["inside"])     # leaves for good (see hull_esc)
+                active = active & ~(fin & s["hull"] & ~s["inside"])     # leaves for good (see hull_esc)
         s["active"] = active
         if not z_inv:
             # Keep offset points inside the periodic slab.

@@ -142,8 +142,7 @@ def _refuse_unsupported_estimators(reqs: list, settings) -> str | None:
     if not need:
         return None
     for r in reqs:
-        c = r.cuticle
-        if c is not None and float(c[1]) > 0.0:
+        if r.cuticle_scales is not None:
             prims = ", ".join(r.prims[:3]) or r.label
             return (f"--estimator {need[0]} needs fibers without cuticle scales; {r.label} ({prims}) has "
                     f"them: bake it separately with --estimator plain")
