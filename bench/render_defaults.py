@@ -57,7 +57,12 @@ LIGHT_THETA_DEG = 8.0     # along the fibers: the specular cone crosses the view
 LIGHT_AROUND_DEG = 30.0   # around the fibers, from the camera's axis
 PEAK_ROWS = 2
 
-#: name -> BakeSettings keyword arguments, per fiber; "ref-a"/"ref-b" make the reference.
+#: The expected-value estimator as the render baked with it when the silk-2deg set was run (K = 8
+#: normals for every event), and with the adaptive allocation of normals that followed.
+_EXPECTED: dict[str, Any] = dict(estimator=("expected",), expected_normals=8, expected_allocation="uniform")
+_ADAPTIVE: dict[str, Any] = dict(estimator=("expected",), expected_normals=8, expected_allocation="adaptive")
+#: name -> BakeSettings keyword arguments, per set; "ref-a"/"ref-b" make the reference. A set
+#: is named after its fiber preset, with an optional "-suffix".
 CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "polyester": {
         "ref-a": dict(resolution_deg=2, photons=400_000, batches=4, seed=0),
@@ -76,6 +81,16 @@ CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
         "ref-a": dict(resolution_deg=2, incoming_deg=10, photons=25_000, batches=4, seed=0),
         "10/10@25k": dict(resolution_deg=10, photons=25_000, batches=4),
         "5/10@25k": dict(resolution_deg=5, incoming_deg=10, photons=25_000, batches=4),
+    },
+    # Silk against a full 2 deg table (8,100 directions, the expected value at 25k photons:
+    # about 26 min by the cost model): every grid compared with bins and nodes together.
+    "silk-2deg": {
+        "ref-a": dict(resolution_deg=2, photons=25_000, batches=4, seed=0, **_EXPECTED),
+        "10/10@25k": dict(resolution_deg=10, photons=25_000, batches=4),
+        "6/6@100k": dict(resolution_deg=6, photons=100_000, batches=4),      # the former default
+        "6/6@15k ev": dict(resolution_deg=6, photons=15_000, batches=4, **_EXPECTED),   # the render's
+        "3/3@15k ev": dict(resolution_deg=3, photons=15_000, batches=4, **_EXPECTED),
+        "3/6@15k ev": dict(resolution_deg=3, incoming_deg=6, photons=15_000, batches=4, **_EXPECTED),
     },
 }
 FORMER_DEFAULT = "6/6@100k"
@@ -244,7 +259,7 @@ def main() -> int:
     out = args.out or REPO / f"bench/results/render_defaults_{args.fiber}.json"
     previous = json.loads(out.read_text()) if out.exists() else {}
     args.work.mkdir(parents=True, exist_ok=True)
-    stage_path = close_up(args.fiber, args.work / f"{args.fiber}_closeup.usda")
+    stage_path = close_up(args.fiber.split("-")[0], args.work / f"{args.fiber}_closeup.usda")
     configs = CONFIGS[args.fiber]
     names = [n for n in ("ref-a", "ref-b") if n in configs] + [
         n for n in configs if not n.startswith("ref-") and (not args.only or n in args.only)]

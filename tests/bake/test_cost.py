@@ -158,6 +158,14 @@ def test_bake_command_estimator_option(tmp_path):
 
     settings = BcsdfTable.load(tables[0]).header["bake"]["settings"]
     assert settings["estimator"] == ["expected"] and settings["expected_normals"] == 4, settings
+    assert settings["expected_allocation"] == "adaptive", settings
+    out = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-allocation", "uniform",
+              "--cache-dir", tmp_path / "a")
+    assert out.returncode == 0, out.stderr
+    tables = list((tmp_path / "a" / "tables").glob("*.npz"))
+    assert len(tables) == 2       # another key: the uniform allocation's table
+    assert {BcsdfTable.load(t).header["bake"]["settings"].get("expected_allocation") for t in tables} == {
+        "adaptive", None}
     wool = run(*base, "--preset", "wool", "--estimator", "expected", "--cache-dir", tmp_path / "b")
     assert wool.returncode == 1 and len(wool.stderr.strip().splitlines()) == 1, wool.stderr
     assert "cuticle scales" in wool.stderr and "--estimator plain" in wool.stderr

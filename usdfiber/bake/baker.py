@@ -36,8 +36,9 @@ photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.samplin
 histograms); "split" splits every hit of the outer surface into ``split_walks`` microsurface
 walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits);
 "expected" histograms, in the tracer's kernel, the expected exit of every outer-surface event
-where leaving is for good over ``expected_normals`` visible normals, at every absorption
-level (:class:`usdfiber.bake.tracer.ExitHistogram`). All
+where leaving is for good over up to ``expected_normals`` visible normals (shared among the
+events by ``expected_allocation``), at every absorption level
+(:class:`usdfiber.bake.tracer.ExitHistogram`). All
 give every direction its own random streams (:func:`stream_seed`).
 
 Grid: :meth:`BakeSettings.grid_for` (the settings' bin size and incoming node spacing, or with
@@ -189,7 +190,8 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
         res = tracer.trace_many(ctx.fs, subs, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
                                 max_bounces=int(st.max_bounces), seed=seeds,
                                 cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split,
-                                expected=expected, histogram=hist)
+                                expected=expected, histogram=hist,
+                                expected_allocation=st.expected_allocation)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:

@@ -14,7 +14,7 @@ from usdfiber.bake import band_limit
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_HIST_BYTES", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
            "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
            "render_bake_settings"]
 
@@ -40,6 +40,11 @@ ESTIMATORS = ("expected", "reciprocity", "split", "stratified")
 MAX_SPLIT_WALKS = 64
 #: Most normals per event of the "expected" estimator (``BakeSettings.expected_normals``).
 MAX_EXPECTED_NORMALS = 64
+#: How the "expected" estimator shares its normals among events
+#: (``BakeSettings.expected_allocation``): "adaptive", from 1 to K in proportion to the
+#: Fresnel weight of the event's exiting branch; "uniform", K each (tables baked before the
+#: adaptive allocation existed).
+EXPECTED_ALLOCATIONS = ("adaptive", "uniform")
 #: The "expected" estimator's memory in the tracer: its in-kernel histograms of one launch at
 #: most (launches are cut at direction boundaries to stay below), and its queue of events
 #: (2^22 events of 84 bytes).
@@ -93,8 +98,12 @@ class BakeSettings:
     #: Walks per outer-surface hit of the "split" estimator (part of the cache key only with it).
     split_walks: int = 8
     #: Visible normals per outer-surface event of the "expected" estimator (in the cache key
-    #: only with it; bench/REPORT.md, section 7, chose the default).
+    #: only with it; bench/REPORT.md, section 7, chose the default); the most per event with
+    #: the adaptive allocation.
     expected_normals: int = 8
+    #: Normals per event of the "expected" estimator: one of :data:`EXPECTED_ALLOCATIONS` (in
+    #: the cache key only with it, and only when adaptive: uniform tables keep earlier keys).
+    expected_allocation: str = "adaptive"
 
     def __post_init__(self) -> None:
         # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
@@ -161,6 +170,9 @@ class BakeSettings:
                 or not 1 <= int(en) <= MAX_EXPECTED_NORMALS):
             raise BakeError(f"expected_normals must be an integer from 1 to {MAX_EXPECTED_NORMALS}, got {en!r}")
         object.__setattr__(self, "expected_normals", int(en))
+        if self.expected_allocation not in EXPECTED_ALLOCATIONS:
+            raise BakeError(f"expected_allocation must be one of {', '.join(EXPECTED_ALLOCATIONS)}, "
+                            f"got {self.expected_allocation!r}")
         if "expected" in est and "split" in est:
             raise BakeError("estimators 'expected' and 'split' cannot be combined (both replace the exits "
                             "through the outer surface)")
@@ -215,6 +227,8 @@ class BakeSettings:
             d.pop("split_walks")    # only used by the split estimator
         if "expected" not in self.estimator:
             d.pop("expected_normals")    # only used by the expected-value estimator
+        if "expected" not in self.estimator or self.expected_allocation == "uniform":
+            d.pop("expected_allocation")     # uniform: keys of tables baked before it existed
         if self.incoming_deg is None:
             d.pop("incoming_deg")  # the paper's grid: keys of tables baked before it existed
         if self.auto_resolution:
@@ -248,10 +262,12 @@ def directions_per_group(settings: BakeSettings) -> int:
 #: (:data:`RENDER_EXPECTED_SETTINGS`) and round fibers finer tables: :func:`render_bake_settings`.
 #: `usdfiber bake` makes the paper's 2 degree tables.
 RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
-#: The render's tables of fibers without cuticle scales: the expected-value estimator with 8
-#: normals at 15k photons per direction. Measured on whole bakes (bench/REPORT.md, section 7,
-#: "whole bakes"), these reach a lower error than 100k plain photons in less time (a silk variant
-#: at 6 degrees, polyester at 2).
+#: The render's tables of fibers without cuticle scales: the expected-value estimator with up to
+#: 8 normals per event (adaptive allocation) at 15k photons per direction. Measured on whole
+#: bakes (bench/REPORT.md, section 7, "whole bakes" and "allocation"), these reach a lower error
+#: than 100k plain photons in 0.69-0.83x the time (a silk or cotton variant at 6 degrees,
+#: polyester at 2). A silk close-up with these 6 degree tables is within 6 % of a full 2 degree
+#: table's highlight (section 10, "silk against a full 2 deg table").
 RENDER_EXPECTED_SETTINGS = replace(RENDER_BAKE_SETTINGS, photons=15_000, estimator=("expected",),
                                    expected_normals=8)
 #: Bins and incoming nodes of the tables a renderer bakes on demand for round fibers.

@@ -54,8 +54,11 @@ at every absorption level (:class:`ExitHistogram`). On an edge of the outline's 
 on the concave sides an escape ray per normal decides, as the real photon's next ray does. The
 real walk goes on; if it then takes exactly that outcome it ends unrecorded (on the concave
 sides: when its next ray escapes), so deposit and kill cover the same outcomes and the estimate
-is unbiased. Events are queued in the loop and their K normals evaluated between phases, on just
-the events (in the loop every lane would pay for them at every iteration). Lumen walls, normals
+is unbiased. Events are queued in the loop and their normals evaluated between phases, on just
+the events (in the loop every lane would pay for them at every iteration). An event gets 1 to K
+normals (``expected_allocation="adaptive"``, the default; "uniform": K each) in proportion to
+the probability of its exiting branch, decided from its state before any normal is drawn, so
+every normal stays uniform and the estimate unbiased (:data:`_EV_TILT`). Lumen walls, normals
 seen from below the macro surface and forced walks take the plain estimator: the choice
 depends on the state only. A smooth outer boundary (hull edges only) deposits its exiting Fresnel branch with
 weight w P_out and continues the other with w (1 - P_out) (Russian roulette below
@@ -72,8 +75,8 @@ import numpy as np
 from usdfiber.backend import mitsuba
 from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
-from usdfiber.bake.settings import (EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES, MAX_EXPECTED_NORMALS,
-                                    MAX_SPLIT_WALKS)
+from usdfiber.bake.settings import (EXPECTED_ALLOCATIONS, EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES,
+                                    MAX_EXPECTED_NORMALS, MAX_SPLIT_WALKS)
 
 __all__ = ["ExitHistogram", "FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
 
@@ -240,6 +243,16 @@ _EV_QUEUE = EXPECTED_QUEUE_BYTES // _EV_EVENT_BYTES
 #: (bench/REPORT.md, "throughput"). Each photon's numbers and arithmetic are the same.
 _TAIL_LANES = 256
 _TAIL_STEPS = 64
+#: Expected-value estimator, allocation of normals ("adaptive", the default): an event gets K
+#: normals in proportion to P_side, the probability of the branch that ends outside, bounded
+#: above by its value at the macro normal tilted by _EV_TILT x beta towards leaving (reflection
+#: on the outside: more grazing; refraction from the material: less, out of total internal
+#: reflection), all K at _EV_FULL and above, in powers of two from 1. Silk queues 3-8 events
+#: per photon; 43-78 % of those from the material deposit nothing (total internal reflection)
+#: and those on the outside deposit F, 0.05-0.1 away from grazing: uniform K spent most
+#: normals where the variance is not (bench/REPORT.md, section 7, "allocation").
+_EV_TILT = 1.5
+_EV_FULL = 0.9
 #: Expected-value estimator at a smooth boundary: a photon whose weight falls below this plays
 #: Russian roulette (survives with probability weight / _RR_WEIGHT, at that weight).
 _RR_WEIGHT = 0.25
@@ -408,7 +421,7 @@ class _Launch:
 
 def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, max_bounces: int,
                  max_steps: int, mode: str, phase_steps: int = 8, split: int = 0, expected: int = 0,
-                 histogram: ExitHistogram | None = None) -> dict:
+                 histogram: ExitHistogram | None = None, expected_allocation: str = "adaptive") -> dict:
     """Trace the photons of ``launch`` (any mix of incoming directions) in one kernel.
 
     Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces``, ``leaks`` and
@@ -416,7 +429,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     L, weight, bounces of every exit deposited on the way) when ``split`` (K walks per outer
     boundary hit) is on. With ``expected`` (K normals per event) the expected exits are
     histogrammed in the kernel: ``hist`` (directions b0 .. b0 + n - 1 of the launch, with
-    ``hist_first`` = b0) is (n, levels, 2, bins) float64, the summed weight and weight x L. The loop runs in phases of ``phase_steps`` iterations; between
+    ``hist_first`` = b0) is (n, levels, 2, bins) float64, the summed weight and weight x L, and
+    ``ev_events`` / ``ev_normals`` (n,) count the events and the normals evaluated
+    (``expected_allocation``: see :data:`_EV_TILT`). The loop runs in phases of ``phase_steps`` iterations; between
     phases finished photons are compacted away (a SIMD packet or GPU warp otherwise keeps
     running until its slowest photon is done), and the rare microfacet samples seen from below
     the macro surface are drawn by the exact float64 inversion on just those lanes. Once at
@@ -556,8 +571,12 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         step_inv = dr.opaque(F, 1.0 / histogram.step)
         step_inv64 = dr.opaque(mi.Float64, 1.0 / histogram.step)
         nth_o, nph_o = dr.opaque(U, histogram.n_theta), dr.opaque(U, histogram.n_phi)
-        lat_a = _lattice_generator(ev)
-        inv_ev = dr.opaque(F, 1.0 / ev)
+        # Normals per event: one class of K, or (adaptive) powers of two up to K, each with
+        # its own lattice.
+        ev_classes = (sorted({min(1 << i, ev) for i in range(ev.bit_length() + 1)})
+                      if expected_allocation == "adaptive" and rough else [ev])
+        tilt_o = dr.opaque(F, _EV_TILT * math.atan(max(alpha, 0.0)))
+        ev_events, ev_normals = dr.zeros(U, hist_n), dr.zeros(U, hist_n)
 
     def deposit_expected(hb: Any, L: Any, mask: Any, d: Any, wt: Any, att: list) -> None:
         """Histogram an exit of weight ``wt`` along ``d`` (lanes ``mask``; ``hb``: their direction
@@ -705,8 +724,37 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         for k, v in zip(EV_FIELDS, vals):
             dr.scatter(evq[k], v, slot, elig)
 
+    def normals_per_event(into: Any, wz: Any) -> Any:
+        """Adaptive allocation (:data:`_EV_TILT`): the smallest class of normals at least
+        K P_side / _EV_FULL, P_side at the tilted macro normal; a function of the event's state
+        only, so every normal stays uniform over the visible normals."""
+        t = dr.acos(dr.clip(wz, 0.0, 1.0))
+        c_out = dr.cos(dr.minimum(t + tilt_o, 0.5 * math.pi))
+        c_in = dr.cos(dr.maximum(t - tilt_o, 0.0))
+        q = dr.select(into, mi.fresnel(c_out, eta_o)[0], 1.0 - mi.fresnel(c_in, inv_eta_o)[0])
+        need = q * (ev / _EV_FULL)
+        k = dr.full(U, ev, dr.width(wz))
+        for c in reversed(ev_classes[:-1]):
+            k = dr.select(need <= c, c, k)
+        return k
+
     def expected_exits(used: int) -> None:
-        """Deposit the expected exits of the ``used`` queued rough outer events.
+        """Deposit the expected exits of the ``used`` queued rough outer events, each with its
+        number of normals (:func:`normals_per_event`; all K with a uniform allocation)."""
+        sel = dr.arange(U, used)
+        if len(ev_classes) == 1:
+            groups = [(ev, sel)]
+        else:
+            k_e = normals_per_event(dr.gather(U, evq["into"], sel) != 0, dr.gather(F, evq["wz"], sel))
+            dr.eval(k_e)
+            groups = [(c, dr.compress(k_e == c)) for c in ev_classes]
+        for c, idx in groups:
+            if dr.width(idx):
+                expected_normals(idx, c)
+        dr.eval(hist, ev_events, ev_normals)
+
+    def expected_normals(sel: Any, kn: int) -> None:
+        """Deposit the expected exits of queued rough outer events ``sel`` with ``kn`` normals each.
 
         The outcome replaced: the branch that ends outside (reflected on the outside,
         transmitted from the material; probability P_side = F or 1 - F), then leaving at the
@@ -719,17 +767,20 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         uniform: unbiased; the lattice stratifies them), each deposited with weight
         w P_side G_leave / K.
         """
-        sel = dr.arange(U, used)
+        used = dr.width(sel)
         e = {k: dr.gather(type(evq[k]), evq[k], sel) for k in EV_FIELDS}
+        dr.scatter_reduce(dr.ReduceOp.Add, ev_events, U(1), e["hb"])
+        dr.scatter_reduce(dr.ReduceOp.Add, ev_normals, U(kn), e["hb"])
+        lat_a, inv_ev = _lattice_generator(kn), dr.opaque(F, 1.0 / kn)
         into, above_out, hull = e["into"] != 0, e["above"] != 0, e["hull"] != 0
         frame = mi.Frame3f(V3(e["nx"], e["ny"], e["nz"]))
         wi, ngs, sg = V3(e["wx"], e["wy"], e["wz"]), V3(e["gx"], e["gy"], e["gz"]), e["sg"]
         p_ev = V3(e["px"], e["py"], 0.0)
         att = attenuation(e["L"])
         valid = dr.full(B, True, used)
-        for j in range(ev):
-            u1 = e["r1"] + j * (1.0 / ev)
-            u2 = e["r2"] + ((j * lat_a) % ev) * (1.0 / ev)
+        for j in range(kn):
+            u1 = e["r1"] + j * (1.0 / kn)
+            u2 = e["r2"] + ((j * lat_a) % kn) * (1.0 / kn)
             u1 = dr.select(u1 >= 1.0, u1 - 1.0, u1)
             u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
             m, _ = distr.sample(wi, mi.Point2f(u1, u2))
@@ -743,10 +794,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             if not outer_convex:
                 # Off the hull the exit may meet the fiber again: then it is not this outcome.
                 # (Planes spread over the slab, one per normal, as the real rays' random ones.)
-                zr = zs_o * ((j + 0.5) / ev - 0.5)
+                zr = zs_o * ((j + 0.5) / kn - 0.5)
                 live = hull & live | escapes_from(p_out, d_out, ~hull & live, zr)
             deposit_expected(e["hb"], e["L"], live, d_out, wt, att)
-        dr.eval(hist)
 
     def expected_smooth(s: dict, elig: Any, d: Any, nm: Any, inside: Any, rng: Any) -> tuple[Any, Any, Any]:
         """Expected value at a smooth outer boundary (lanes ``elig``): the branch that ends
@@ -1236,6 +1286,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         extra["w"] = np.asarray(out_w.numpy())
         extra["hist"] = np.ascontiguousarray(np.asarray(hist.numpy()).reshape(hist_n, nbin, nlev, 2).transpose(0, 2, 3, 1))
         extra["hist_first"] = hist_first
+        if rough:
+            extra["ev_events"] = np.asarray(ev_events.numpy(), dtype=np.int64)
+            extra["ev_normals"] = np.asarray(ev_normals.numpy(), dtype=np.int64)
     if split:
         extra["w"] = np.asarray(out_w.numpy())
         extra["deposits"] = {k: (np.concatenate(v) if v else np.zeros(0, np.uint32 if k in ("lane", "bounces")
@@ -1269,6 +1322,7 @@ def trace(
     split: int = 0,
     expected: int = 0,
     histogram: ExitHistogram | None = None,
+    expected_allocation: str = "adaptive",
 ) -> TraceResult:
     """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
 
@@ -1296,13 +1350,16 @@ def trace(
     estimator at the outer boundary: at every microfacet event on an outer face of the outline's
     convex hull it histograms the expected exit of the branch that ends outside and leaves the
     microsurface, over K visible normals (see the module docstring); the result's
-    ``histogram`` holds those exits, its rows the others. Many directions are faster
+    ``histogram`` holds those exits, its rows the others. ``expected_allocation``:
+    "adaptive" (default) gives each event from 1 to K normals in proportion to the Fresnel
+    weight of its exiting branch (:data:`_EV_TILT`), "uniform" K to every event; the result's
+    ``extra`` counts ``expected_events`` and ``expected_normals``. Many directions are faster
     together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
                       max_steps=max_steps, sampler=sampler, split=split, expected=expected,
-                      histogram=histogram)[0]
+                      histogram=histogram, expected_allocation=expected_allocation)[0]
 
 
 def trace_many(
@@ -1322,6 +1379,7 @@ def trace_many(
     split: int = 0,
     expected: int = 0,
     histogram: ExitHistogram | None = None,
+    expected_allocation: str = "adaptive",
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -1369,6 +1427,9 @@ def trace_many(
         raise ValueError("expected needs an extruded fiber: leaving through cuticle scales is not known to be for good")
     if expected and histogram is None:
         raise ValueError("expected needs a histogram (ExitHistogram: the output bins and absorption levels)")
+    if expected_allocation not in EXPECTED_ALLOCATIONS:
+        raise ValueError(f"expected_allocation must be one of {', '.join(EXPECTED_ALLOCATIONS)}, "
+                         f"got {expected_allocation!r}")
     if sampler == "sobol" and int(counts.max()) > 1 << 32:
         raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
@@ -1400,6 +1461,7 @@ def trace_many(
     n_hit = np.zeros(nd, dtype=np.int64)
     n_leaks = np.zeros(nd, dtype=np.int64)
     n_forced = np.zeros(nd, dtype=np.int64)
+    ev_counts = np.zeros((2, nd), dtype=np.int64)      # expected value: events, normals
     hists = (np.zeros((nd, len(histogram.levels), 2, histogram.n_bins)) if expected else None)
     # Expected values: a launch spans few enough directions for its histograms to stay below
     # _HIST_BYTES (launches end at a direction's end instead).
@@ -1417,7 +1479,7 @@ def trace_many(
         launch = _Launch(beams32, beam, photon, mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
                            max_steps=int(max_steps), mode=mode, split=int(split), expected=expected,
-                           histogram=histogram)
+                           histogram=histogram, expected_allocation=expected_allocation)
         a = b
         hit = out["hit_any"]
         n_hit += np.bincount(beam[hit], minlength=nd)
@@ -1427,6 +1489,9 @@ def trace_many(
         if expected:
             f0 = int(out["hist_first"])
             hists[f0:f0 + len(out["hist"])] += out["hist"]
+            if "ev_events" in out:
+                ev_counts[0, f0:f0 + len(out["hist"])] += out["ev_events"]
+                ev_counts[1, f0:f0 + len(out["hist"])] += out["ev_normals"]
             # Photons whose last exit was deposited as an expectation (weight 0) leave no row.
             hit = hit & ((out["w"] > 0.0) | out["cut"])
         if split:
@@ -1473,7 +1538,9 @@ def trace_many(
             eta=float(eta),
             beta_deg=float(beta_deg),
             seconds=seconds * float(counts[j]) / total,
-            extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j])},
+            extra={"leaks": int(n_leaks[j]), "forced": int(n_forced[j]),
+                   **({"expected_events": int(ev_counts[0, j]), "expected_normals": int(ev_counts[1, j])}
+                      if expected else {})},
             weight=cat["w"][r].astype(np.float32, copy=False) if (split or expected) else None,
             histogram=hists[j] if expected else None,
             histogram_bins=histogram if expected else None,

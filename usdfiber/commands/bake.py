@@ -82,10 +82,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", type=_estimator, default=None, metavar="NAME[,NAME]",
                    help="variance reduction: plain (default), expected (the exit lobe's expectation at "
                         "the outer surface, fibers without cuticle scales: about 9x less variance per "
-                        "photon, 1.2-2.2x less time than plain at equal error on whole tables), "
+                        "photon, 1.8-2.2x less time than plain at equal error on whole tables), "
                         "stratified, reciprocity (with --incoming box) or split; combine with commas")
     p.add_argument("--expected-normals", type=positive_int, default=None, metavar="K",
-                   help="visible normals per outer-surface event of --estimator expected (default 8)")
+                   help="visible normals per outer-surface event of --estimator expected (default 8; "
+                        "the most per event with --expected-allocation adaptive)")
+    p.add_argument("--expected-allocation", choices=("adaptive", "uniform"), default=None,
+                   help="normals per event of --estimator expected: adaptive (default: 1 to K, in "
+                        "proportion to the Fresnel weight of the exiting branch) or uniform (K each)")
     p.add_argument("--incoming", choices=("centre", "box"), default="centre",
                    help="light of a table node from the bin centre (default, the paper's) or spread "
                         "over the bin (box: a reciprocal bin-averaged table)")
@@ -179,6 +183,8 @@ def _settings(args: argparse.Namespace):
         kw["estimator"] = args.estimator
     if args.expected_normals is not None:
         kw["expected_normals"] = args.expected_normals
+    if args.expected_allocation is not None:
+        kw["expected_allocation"] = args.expected_allocation
     try:
         return BakeSettings(**kw)
     except (BakeError, ValueError) as exc:
