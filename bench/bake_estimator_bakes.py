@@ -61,21 +61,28 @@ def main() -> None:
     ap.add_argument("--normals", type=int, default=8, help="K of the expected-value estimator")
     ap.add_argument("--rounds", type=int, default=1, help="alternating rounds of the bakes")
     ap.add_argument("--variants", default="plain,uniform",
-                    help="bakes of each case, alternating: plain, uniform, adaptive (comma separated)")
+                    help="bakes of each case, alternating: plain, uniform, adaptive (comma separated; "
+                         "NAME@K: K normals instead of --normals)")
     ap.add_argument("--out", default="bench/results/estimator_bakes.json")
     args = ap.parse_args()
     rec = Record("estimator_bakes", args)
     rows = []
     with tempfile.TemporaryDirectory() as root:
         variants = args.variants.split(",")
+        def normals(v: str) -> tuple[str, int]:
+            name, _, k = v.partition("@")
+            return name, 0 if name == "plain" else int(k or args.normals)
+
         for v in variants:                                        # compile the kernels first
-            bake("polyester", 30.0, 1000, 0 if v == "plain" else args.normals, root, v)
+            bake("polyester", 30.0, 1000, normals(v)[1], root, normals(v)[0])
         for case in args.cases.split(","):
             fiber, res, n_plain, n_ev, *inc = case.split(":")
             for r in range(args.rounds):
                 for v in variants:
-                    k, n = (0, int(n_plain)) if v == "plain" else (args.normals, int(n_ev))
-                    row = bake(fiber, float(res), n, k, root, v, float(inc[0]) if inc else None)
+                    name, k = normals(v)
+                    n = int(n_plain) if name == "plain" else int(n_ev)
+                    row = bake(fiber, float(res), n, k, root, name, float(inc[0]) if inc else None)
+                    row["variant"] = v
                     row["round"] = r
                     row["load"] = [round(x, 2) for x in os.getloadavg()]
                     rows.append(row)
