@@ -114,8 +114,8 @@ def main() -> None:
                      "rel_rms_tested": float(np.sqrt(ms)), "factor": ms / e16 ** 2})
     n_dir = sum(x["directions"] for x in rows)
     T = res["tested"]["wall_seconds"]
-    t_adaptive = sum(T * x["directions"] / n_dir * x["factor"] for x in rows)
-    t_uniform = T * max(x["factor"] for x in rows)
+    t_per_row = sum(T * x["directions"] / n_dir * x["factor"] for x in rows)
+    t_one_count = T * max(x["factor"] for x in rows)
     t_plain = res["plain"]["wall_seconds"] * PAPER_PHOTONS / n_plain
     n_tested = int(res["tested"]["settings"]["photons"])
     need = sum(x["directions"] * n_tested * x["factor"] for x in rows)     # photons, every row at its e16
@@ -130,18 +130,17 @@ def main() -> None:
         at_rates["photon_rates"] = rate
     res["rows"] = rows
     res["to_16M_error"] = {
-        "tested_photons_per_row_s": t_adaptive, "tested_one_photon_count_s": t_uniform,
+        "tested_photons_per_row_s": t_per_row, "tested_one_photon_count_s": t_one_count,
         "plain_linear_s": t_plain, "photons_needed": need, "at_measured_rates": at_rates,
-        "worst_row": max(rows, key=lambda x: x["factor"])["row"],
-        "photons_tested": int(res["tested"]["settings"]["photons"])}
+        "worst_row": max(rows, key=lambda x: x["factor"])["row"], "photons_tested": n_tested}
     rec.doc["results"] = res
     rec.finish(args.out)
     tt, pp = res["tested"], res["plain"]
     print(f"tested: {tt['directions']} directions, {T / 60:.1f} min wall, error rms {100 * tt['rel_rms']:.2f} % "
           f"(p95 {100 * tt['rel_p95']:.2f} %, max {100 * tt['rel_max']:.2f} %)")
     print(f"plain at {n_plain}: {pp['wall_seconds'] / 60:.1f} min wall, error rms {100 * pp['rel_rms']:.2f} %")
-    print(f"to every row's 16M-photon error: tested {t_adaptive / 3600:.2f} h (photons per row), "
-          f"{t_uniform / 3600:.2f} h (one count); plain {t_plain / 3600:.1f} h (linear: upper bounds)")
+    print(f"to every row's 16M-photon error: tested {t_per_row / 3600:.2f} h (photons per row), "
+          f"{t_one_count / 3600:.2f} h (one count); plain {t_plain / 3600:.1f} h (linear: upper bounds)")
     if at_rates:
         print("at the measured photon rates: " + ", ".join(
             f"{k[:-2]} {v / 3600:.1f} h" for k, v in at_rates.items() if k.endswith("_s")))
