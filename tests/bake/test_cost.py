@@ -172,3 +172,6 @@ def test_bake_command_estimator_option(tmp_path):
     assert not (tmp_path / "b" / "tables").exists() or not list((tmp_path / "b" / "tables").glob("*.npz"))
     bad = run(*base, "--preset", "polyester", "--estimator", "magic", "--cache-dir", tmp_path / "c")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "magic" in bad.stderr, bad.stderr
+    bad = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-allocation", "greedy",
+              "--cache-dir", tmp_path / "c")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "greedy" in bad.stderr, bad.stderr
