@@ -289,7 +289,7 @@ def _refuse_nonfinite(path: Path, pixels: np.ndarray, names: list[str], *, half_
         # Half float tops out at 65504: a brighter firefly would silently turn into Inf.
         bad = np.abs(pixels) > _HALF_MAX
         problem = f"values beyond the half-float range (|v| > {_HALF_MAX:g}, stored as Inf)"
-        hint = "write with half=False"
+        hint = "write 32-bit floats (usdfiber render --float; write_exr(half=False))"
     if not bad.any():
         return
     per_pixel = bad.any(axis=2)

@@ -206,3 +206,31 @@ def test_bake_is_refused_over_the_budget(tmp_path, capsys):
     assert not (tmp_path / "tables").exists()
     s = BakeSettings(resolution_deg=0.5)
     assert s.table_bytes() > 1 << 40 > BakeSettings().table_bytes()
+
+
+def test_reference_normals_of_many_segments_peak_in_chunks():
+    """The reference frames of expanded yarns (millions of segments) are formed in chunks of
+    whole curves: the peak stays near a chunk's, not about 600 bytes per segment of the whole
+    (the 9M segments of a long yarn at full detail took 5 GB and broke the memory budget)."""
+    import tracemalloc
+
+    from usdfiber.geometry.curves import NORMALS_CHUNK, CurveGeometry, reference_normals
+
+    n_curves, per_curve = 20, 50_000                  # 1M segments, 20 curves
+    rng = np.random.default_rng(0)
+    n_pts = per_curve + 3
+    pts = np.cumsum(rng.normal(size=(n_curves * n_pts, 3)), axis=0)
+    starts = (np.arange(n_curves)[:, None] * n_pts + np.arange(per_curve)).ravel()
+    geom = CurveGeometry(pts, np.ones(len(pts)), starts, np.repeat(np.arange(n_curves), per_curve), n_curves)
+    tracemalloc.start()
+    try:
+        out = reference_normals(geom)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert out.shape == (n_curves * per_curve, 3) and np.all(np.isfinite(out))
+    # The output (24 B per segment) and the curve marks, plus one chunk of whole curves (at
+    # most NORMALS_CHUNK + one curve, 312k segments) at about 600 B per segment: under 300 MB;
+    # all 1M segments at once peaked at 620 MB.
+    assert NORMALS_CHUNK + per_curve < 320_000
+    assert peak < 300e6, peak

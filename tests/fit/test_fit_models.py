@@ -144,3 +144,18 @@ def test_materialx_mapping_matches_materialx_roughness_node():
     assert mx_in["absorption_coefficient"] == (0.1, 0.2, 0.3)
     with pytest.raises(ValueError, match="no lobe tints"):
         ChiangParams(tint_tt=(0.5,)).to_mitsuba()
+
+
+@pytest.mark.parametrize("ior", [1.01, 1.55])
+def test_chiang_bins_are_finite_for_the_smallest_azimuthal_roughness(ior):
+    """A fit may drive beta_n to its bound (an index near 1: little to scatter): the logistic's
+    normalization at a scale s of about 1e-3 overflowed (exp(pi / s))."""
+    from usdfiber.bake.grid import Grid
+
+    grid = Grid(30.0)
+    stub = FitTarget(np.zeros((grid.n_theta_i, grid.n_theta_o, grid.n_phi_o, 1)), grid.theta_i_nodes(),
+                     grid.theta_o_edges(), grid.step, grid.theta_symmetric, np.zeros((grid.n_theta_i, 1)))
+    params = ChiangParams(ior=ior, beta_m=0.3, beta_n=0.005, sigma_a=(0.0,))
+    assert params.scale < 2e-3
+    vals = chiang.grid_values(params, stub, chiang.make_grid(stub, 16, 2))
+    assert np.all(np.isfinite(vals)) and vals.max() > 0

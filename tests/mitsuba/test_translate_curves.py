@@ -455,6 +455,23 @@ def test_concatenate_offsets_and_provenance():
                                                                   C.reference_normals(gb)]), atol=1e-12)
 
 
+def test_reference_normals_in_chunks_of_whole_curves_are_the_same(monkeypatch):
+    """Long geometry is framed in chunks of whole curves (bounded memory): the same values, a
+    chunk boundary never splits a curve's frame."""
+    from usdfiber.geometry import curves as geometry_curves
+
+    rng = np.random.default_rng(1)
+    stage = Usd.Stage.CreateInMemory()
+    counts = [5, 40, 7, 300, 4, 60]
+    pts = np.cumsum(rng.normal(size=(sum(counts), 3)), axis=0)
+    g = C.curves_from_prim(define_curves(stage, "/c", "cubic", "bspline", "pinned", counts, pts.tolist(),
+                                         [0.1], "constant").GetPrim())
+    whole = C.reference_normals(g)
+    for chunk in (1, 16, 100):
+        monkeypatch.setattr(geometry_curves, "NORMALS_CHUNK", chunk)
+        np.testing.assert_array_equal(C.reference_normals(g), whole)
+
+
 def _helix_geometry(n=4000, turns=12.0):
     stage = Usd.Stage.CreateInMemory()
     th = np.linspace(0, 2 * np.pi * turns, n)

@@ -48,6 +48,7 @@ from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.render_settings import as_timecode, to_mi_transform
 
 __all__ = ["CameraWarning", "CONFORM_POLICIES", "DefaultFraming", "camera_sensor", "conform_aperture", "default_camera",
+           "validate_camera",
            "default_framing"]
 
 # Gf.Camera.APERTURE_UNIT / FOCAL_LENGTH_UNIT: tenths of a scene unit.
@@ -124,6 +125,40 @@ def _sampler(spp: int, seed: int) -> dict:
     return {"type": "independent", "sample_count": int(spp), "seed": int(seed)}
 
 
+def validate_camera(prim: Usd.Prim, xform: np.ndarray, time: Usd.TimeCode | float | None) -> None:
+    """Raise :class:`TranslationError` for a camera that cannot be rendered: not a camera;
+    apertures, offsets, focal length or clipping range that are not finite or out of range; a
+    world transform that is not finite or has no orientation (a scale of 0). (Lens attributes
+    authored with another type than the schema's are ``usdfiber check`` errors of their own.)"""
+    if not prim or not prim.IsA(UsdGeom.Camera):
+        raise TranslationError(prim.GetPath() if prim else "<invalid prim>", None,
+                               "is not a UsdGeom.Camera")
+    where = str(prim.GetPath())
+    tc = as_timecode(time)
+    cam = UsdGeom.Camera(prim)
+    gf = cam.GetCamera(tc)
+    h_ap, v_ap = float(gf.horizontalAperture), float(gf.verticalAperture)
+    for name, value in (("horizontalAperture", h_ap), ("verticalAperture", v_ap)):
+        if not 0 < value < math.inf:
+            raise TranslationError(where, name, f"must be > 0 and finite, got {value}")
+    for name, value in (("horizontalApertureOffset", gf.horizontalApertureOffset),
+                        ("verticalApertureOffset", gf.verticalApertureOffset), ("fStop", gf.fStop),
+                        ("focusDistance", gf.focusDistance)):
+        if not math.isfinite(float(value)):
+            raise TranslationError(where, name, f"must be finite, got {float(value)}")
+    near, far = float(gf.clippingRange.min), float(gf.clippingRange.max)
+    if not 0 < near < far < math.inf:
+        raise TranslationError(where, "clippingRange", f"needs 0 < near < far (finite), got ({near}, {far})")
+    if gf.projection != gf.Orthographic and not 0 < float(gf.focalLength) < math.inf:
+        raise TranslationError(where, "focalLength", f"must be > 0 and finite for a perspective camera, "
+                               f"got {float(gf.focalLength)}")
+    m = np.asarray(xform, dtype=np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise TranslationError(where, "xformOpOrder", "the camera's world transform is not finite")
+    if not abs(np.linalg.det(m[:3, :3])) > 0:
+        raise TranslationError(where, "xformOpOrder", "the camera's world transform is singular (a scale of 0)")
+
+
 def camera_sensor(
     prim: Usd.Prim,
     xform: np.ndarray,
@@ -148,9 +183,7 @@ def camera_sensor(
     focal length or clipping range.
     """
     cam = UsdGeom.Camera(prim)
-    if not prim or not prim.IsA(UsdGeom.Camera):
-        raise TranslationError(prim.GetPath() if prim else "<invalid prim>", None,
-                               "is not a UsdGeom.Camera")
+    validate_camera(prim, xform, time)
     where = str(prim.GetPath())
     tc = as_timecode(time)
     gf = cam.GetCamera(tc)  # reads every lens attribute with its fallback
@@ -159,11 +192,6 @@ def camera_sensor(
     h_off, v_off = float(gf.horizontalApertureOffset), float(gf.verticalApertureOffset)
     focal = float(gf.focalLength)
     near, far = float(gf.clippingRange.min), float(gf.clippingRange.max)
-    for name, value in (("horizontalAperture", h_ap), ("verticalAperture", v_ap)):
-        if not value > 0:
-            raise TranslationError(where, name, f"must be > 0, got {value}")
-    if not 0 < near < far:
-        raise TranslationError(where, "clippingRange", f"needs 0 < near < far, got ({near}, {far})")
 
     aspect = width / height
     if conform_policy not in CONFORM_POLICIES:
@@ -197,8 +225,6 @@ def camera_sensor(
         local = np.diag([half_w, half_w, 1.0, 1.0]) @ _USD_FROM_MI @ offset @ rigid
         return {"type": "orthographic", "to_world": to_mi_transform(local), **common}
 
-    if not focal > 0:
-        raise TranslationError(where, "focalLength", f"must be > 0 for a perspective camera, got {focal}")
     fov = math.degrees(2.0 * math.atan(0.5 * h_ap / focal))
     to_world = to_mi_transform(_USD_FROM_MI @ rigid)
     sensor: dict[str, Any] = {"fov": fov, "fov_axis": "x", "to_world": to_world, **common}

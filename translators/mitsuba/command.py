@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from usdfiber.commands.arg_types import (add_memory_budget_option, finite_float, non_negative_float,
-                                         positive_int, seed)
+                                         positive_float, positive_int, seed)
+from usdfiber.translators.mitsuba.render_settings import MAX_PIXELS, MAX_SPP
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -36,9 +37,24 @@ def _resolution(text: str) -> tuple[int, int]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 960x540), got {text!r}") from None
-    if w < 1 or h < 1 or w * h > 2 ** 28:
-        raise argparse.ArgumentTypeError(f"resolution out of range: {text!r}")
+    if w < 1 or h < 1 or w * h > MAX_PIXELS:
+        raise argparse.ArgumentTypeError(f"expected a positive size of at most {MAX_PIXELS} pixels "
+                                         f"(16384 x 16384), got {text!r}")
     return w, h
+
+
+def _spp(text: str) -> int:
+    n = positive_int(text)
+    if n > MAX_SPP:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_SPP} samples per pixel, got {text}")
+    return n
+
+
+def _exposure(text: str) -> float:
+    x = finite_float(text)
+    if abs(x) > 100.0:
+        raise argparse.ArgumentTypeError(f"expected an exposure within +-100 stops, got {text}")
+    return x
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--png", type=Path, metavar="OUT.png", help="display image (default: OUT with .png)")
     p.add_argument("--no-png", action="store_true", help="write the EXR only")
     p.add_argument("--resolution", type=_resolution, metavar="WxH", help="image size in pixels")
-    p.add_argument("--spp", type=positive_int, help="samples per pixel")
+    p.add_argument("--spp", type=_spp, help="samples per pixel")
     p.add_argument("--camera", metavar="PATH", help="camera prim to render through")
     p.add_argument("--render-settings", metavar="PATH", help="UsdRender.Settings prim to use")
     p.add_argument("--frame", type=finite_float, metavar="T", help="time code (default: the default time)")
@@ -62,7 +78,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-depth", type=positive_int, default=32, help="longest light path (default: 32)")
     p.add_argument("--purpose", action="append", choices=("default", "render", "proxy", "guide"),
                    help="purposes to render (repeatable; default: the render settings' or default+render)")
-    p.add_argument("--bake-resolution", type=finite_float, metavar="DEG",
+    p.add_argument("--bake-resolution", type=positive_float, metavar="DEG",
                    help="bin size of tables baked for this render, for every fiber (default: 2 for round "
                         "fibers, 6 for others)")
     p.add_argument("--bake-photons", type=positive_int, metavar="N",
@@ -89,7 +105,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--view", help="OCIO view of the PNG (see --list-views)")
     p.add_argument("--display", help="OCIO display of the PNG (default: sRGB - Display)")
     p.add_argument("--ocio-config", metavar="CONFIG", help="OCIO config (default: $OCIO or ocio://cg-config-latest)")
-    p.add_argument("--exposure", type=finite_float, default=0.0, metavar="STOPS", help="exposure of the PNG in stops")
+    p.add_argument("--exposure", type=_exposure, default=0.0, metavar="STOPS", help="exposure of the PNG in stops")
     p.add_argument("--list-views", action="store_true", help="list the OCIO displays and views and exit")
     p.add_argument("--warnings-as-errors", action="store_true", help="refuse stages with check warnings")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -131,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".exr":
         raise UsageError(f"--output must name an .exr file, got {out}")
     png = None if args.no_png else (args.png or out.with_suffix(".png"))
+    if png is not None and png.suffix.lower() != ".png":
+        raise UsageError(f"--png must name a .png file, got {png}")
     job = RenderJob(stage=args.stage, output=out, png=png, frame=args.frame, resolution=args.resolution,
                     spp=args.spp, camera=args.camera, render_settings=args.render_settings,
                     device=args.device, threads=args.threads, seed=args.seed, max_depth=args.max_depth,

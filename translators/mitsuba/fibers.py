@@ -185,13 +185,19 @@ def _plan_yarns(geom: CurveGeometry, yarn: YarnParams, view: CameraView | None, 
     expand: list[tuple[int, np.ndarray, float, ExpansionEstimate]] = []
     far_curves: list[int] = []
     far_lines: list[tuple[np.ndarray, float]] = []
-    stats = {"yarns": 0, "culled": 0, "skipped": 0, "fibers": 0, "fibers_full": 0, "far": 0}
+    stats = {"yarns": 0, "culled": 0, "skipped": 0, "fibers": 0, "fibers_full": 0, "far": 0, "degenerate": 0}
     for k, ss in enumerate(_curve_segments(geom)):
         # Two samples per segment decide visibility and size; only a yarn that is expanded
         # needs the dense centre line (a garment's far yarns would spend minutes on it).
         pts, rad = profile.call("centre_sampling", _sample_curve, geom, ss, 2)
         stats["yarns"] += 1
         r = float(rad.max())
+        # A yarn of no width or no length has no fibers to draw (`usdfiber check` warns of a
+        # zero-length curve; widths of 0 are allowed): left out, as a fiber curve of width 0 is.
+        length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+        if not (r > 0 and length > 1e-12 * (1.0 + float(np.abs(pts).max()))):
+            stats["degenerate"] += 1
+            continue
         fraction = 1.0
         if view is not None:
             n_px = view.pixels(2 * r, pts)
@@ -275,9 +281,11 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
                      progress: Callable[..., Any] | None = None, view: CameraView | None = None,
                      lod_scale: float = 1.0, yarn_settings: YarnBakeSettings | None = None,
                      lod: LodPolicy | None = None, profile: TranslationProfile | None = None,
-                     memory_budget: MemoryBudget | None = None) -> FiberTranslation | None:
+                     memory_budget: MemoryBudget | None = None,
+                     warnings_out: list[str] | None = None) -> FiberTranslation | None:
     """The fiber curves of ``placements`` (:class:`usdfiber.translators.mitsuba.stage_walk.Placement` of fiber
-    prims) with their tables (baked with ``settings`` when missing); None without fibers.
+    prims) with their tables (baked with ``settings`` when missing); None without fibers (the
+    warnings, e.g. of yarns left out, then go to ``warnings_out``).
 
     Yarn prims (FiberYarnAPI) are expanded into fiber curves (:mod:`usdfiber.geometry.yarn`)
     with the level of detail of ``view`` (:mod:`usdfiber.translators.mitsuba.lod`, the policy ``lod``
@@ -369,6 +377,9 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
                                     for t in tables], np.int64)
         if yarn is not None:
             plan = profile.call("yarn_lod", _plan_yarns, geom, yarn, view, lod_scale, lod, profile)
+            if plan.stats["degenerate"]:
+                warnings.append(f"{pl.path}: {plan.stats['degenerate']} yarn curve(s) of zero width or length "
+                                "not drawn")
             yarn_stats.append(plan.stats)
             if not plan.far_count and plan.stats["skipped"]:
                 far_report.append(far_field_entry(pl.path, plan.stats, None, False, 0.0))
@@ -402,6 +413,8 @@ def translate_fibers(placements: Sequence[Any], stage: Usd.Stage, time: Usd.Time
             add_fibers(pl.path, params, fibers, slot_of_variant, n_tables)
 
     if not parts:
+        if warnings_out is not None:
+            warnings_out.extend(warnings)
         return None
     geometry = profile.call("concatenate", concatenate, parts)
     bank = profile.call("fiber_bank", FiberBank.build, slots)

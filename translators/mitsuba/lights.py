@@ -86,6 +86,14 @@ _POLE_Y_TO_Z = np.array([[1.0, 0.0, 0.0, 0.0],
                          [0.0, 0.0, 0.0, 1.0]])
 
 
+#: Most stops of ``inputs:exposure`` (2^128 overflows float32; photographic exposures are
+#: within +-30 stops).
+_MAX_EXPOSURE = 100.0
+#: Most radiance (per channel) of a light: beyond float32's range Mitsuba's sums overflow to
+#: infinity and the image is refused after the whole render.
+_MAX_RADIANCE = 1e30
+
+
 def _get(attr: Usd.Attribute, tc: Usd.TimeCode, default: Any = None) -> Any:
     value = attr.Get(tc) if attr else None
     return default if value is None else value
@@ -103,6 +111,13 @@ def light_radiance(prim: Usd.Prim, time: Usd.TimeCode | float | None = None) -> 
     intensity = float(_get(light.GetIntensityAttr(), tc, 1.0))
     exposure = float(_get(light.GetExposureAttr(), tc, 0.0))
     color = np.array(_get(light.GetColorAttr(), tc, (1.0, 1.0, 1.0)), dtype=np.float64)
+    # A NaN or infinite radiance renders black or NaN pixels far from its cause: refused here.
+    if not math.isfinite(intensity):
+        raise TranslationError(where, "inputs:intensity", f"must be finite, got {intensity:g}")
+    if not -_MAX_EXPOSURE <= exposure <= _MAX_EXPOSURE:
+        raise TranslationError(where, "inputs:exposure", f"must be within +-{_MAX_EXPOSURE:g} stops, got {exposure:g}")
+    if color.shape != (3,) or not np.all(np.isfinite(color)):
+        raise TranslationError(where, "inputs:color", f"must be three finite numbers, got {tuple(color.ravel())}")
     if (color < 0).any():
         warns.append(f"{where}.inputs:color: negative components {tuple(color)} clamped to 0")
         color = np.maximum(color, 0.0)
@@ -114,7 +129,11 @@ def light_radiance(prim: Usd.Prim, time: Usd.TimeCode | float | None = None) -> 
                          f"1000-10000 K; using {clamped:g} K")
             kelvin = clamped
         color = color * blackbody_rgb(kelvin)
-    return intensity * 2.0 ** exposure * color, warns
+    radiance = intensity * 2.0 ** exposure * color
+    if not np.all(np.isfinite(radiance)) or radiance.max() > _MAX_RADIANCE:
+        raise TranslationError(where, "inputs:intensity", f"intensity x 2^exposure x color is {tuple(radiance)}; "
+                               f"expected finite values up to {_MAX_RADIANCE:g} (half-float images hold 65504)")
+    return radiance, warns
 
 
 def _rgb(v: np.ndarray) -> dict:

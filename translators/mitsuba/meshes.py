@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pxr import Usd, UsdGeom, UsdShade
+from pxr import Sdf, Usd, UsdGeom, UsdShade
 
 from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.images import load_image
@@ -134,13 +134,27 @@ class _Shading:
         attrs = inp.GetValueProducingAttributes(shaderOutputsOnly=False)
         if not attrs:
             value = inp.Get(self.tc)
-            return ("default", None) if value is None else ("value", value)
+            return ("default", None) if value is None else ("value", self._finite(shader, name, value))
         attr = attrs[0]
         base, kind = UsdShade.Utils.GetBaseNameAndType(attr.GetName())
         if kind == UsdShade.AttributeType.Output:
             return "output", (UsdShade.Shader(attr.GetPrim()), str(base))
         value = attr.Get(self.tc)
-        return ("default", None) if value is None else ("value", value)
+        return ("default", None) if value is None else ("value", self._finite(shader, name, value))
+
+    @staticmethod
+    def _finite(shader: UsdShade.Shader, name: str, value: Any) -> Any:
+        # A NaN or Inf colour, emission or roughness renders NaN pixels, refused only after the
+        # whole render: refused here, naming the input.
+        if isinstance(value, (str, bytes, bool, Sdf.AssetPath)):
+            return value
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            return value
+        if not np.all(np.isfinite(arr)):
+            raise TranslationError(shader.GetPath(), f"inputs:{name}", f"must be finite, got {value}")
+        return value
 
     def value(self, shader: UsdShade.Shader, name: str, default: Any) -> Any:
         kind, v = self.source(shader, name)

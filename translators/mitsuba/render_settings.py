@@ -32,6 +32,13 @@ __all__ = [
 
 #: Custom attribute (on a RenderSettings or RenderProduct prim) holding samples per pixel.
 SPP_ATTR = "usdfiber:samplesPerPixel"
+#: Most samples per pixel of a render (stage or command line): 2^20, far above any
+#: production setting; beyond it a typing error would run for days (Mitsuba itself takes
+#: up to 2^32 - 1).
+MAX_SPP = 1 << 20
+#: Most pixels of an image (16384 x 16384): the film, its passes and the written EXR must
+#: fit in memory.
+MAX_PIXELS = 1 << 28
 
 
 def as_timecode(time: Usd.TimeCode | float | None) -> Usd.TimeCode:
@@ -136,8 +143,9 @@ def read_render_settings(stage: Usd.Stage, path: str | Sdf.Path | None = None) -
 
     res = pick("GetResolutionAttr")
     resolution = (int(res[0]), int(res[1])) if res is not None else (2048, 1080)
-    if resolution[0] <= 0 or resolution[1] <= 0:
-        raise TranslationError(sdf_path, "resolution", f"must be positive, got {resolution}")
+    if resolution[0] <= 0 or resolution[1] <= 0 or resolution[0] * resolution[1] > MAX_PIXELS:
+        raise TranslationError(sdf_path, "resolution", f"must be positive with at most {MAX_PIXELS} pixels "
+                               f"(16384 x 16384), got {resolution}")
     pixel_aspect = float(pick("GetPixelAspectRatioAttr") or 1.0)
     policy = str(pick("GetAspectRatioConformPolicyAttr") or "expandAperture")
     dw = pick("GetDataWindowNDCAttr")
@@ -151,8 +159,9 @@ def read_render_settings(stage: Usd.Stage, path: str | Sdf.Path | None = None) -
         attr = base.GetAttribute(SPP_ATTR)
         if _authored(attr):
             value = attr.Get()
-            if not isinstance(value, int) or value <= 0:
-                raise TranslationError(base.GetPath(), SPP_ATTR, f"must be a positive int, got {value!r}")
+            if not isinstance(value, int) or isinstance(value, bool) or not 0 < value <= MAX_SPP:
+                raise TranslationError(base.GetPath(), SPP_ATTR,
+                                       f"must be an int from 1 to {MAX_SPP}, got {value!r}")
             spp = value
             break
 

@@ -32,7 +32,7 @@ from usdfiber.bake.cache import TableCache
 from usdfiber.memory_budget import MemoryBudget
 from usdfiber.stage_io import default_render_time, stage_metrics_problems
 
-from usdfiber.translators.mitsuba.camera import camera_sensor, default_camera, default_framing
+from usdfiber.translators.mitsuba.camera import camera_sensor, default_camera, default_framing, validate_camera
 from usdfiber.translators.mitsuba.curves import CurveError, concatenate, curves_from_prim, make_curve_shape
 from usdfiber.translators.mitsuba.fiber_bsdf import fiber_bsdf
 from usdfiber.translators.mitsuba.errors import TranslateError, TranslationError
@@ -244,6 +244,10 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     w, h = resolution
     up = UsdGeom.GetStageUpAxis(stage)
     if cam is not None:
+        try:  # before the view is computed from it
+            validate_camera(cam, UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), tc)
+        except TranslationError as exc:
+            raise TranslateError(str(exc)) from None
         view = camera_view(cam, tc, w, h)
     else:
         # No camera: the default camera frames the visible geometry, and level of detail
@@ -269,7 +273,7 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     fibers = translate_fibers(fiber_placements, stage, tc, settings=opt.bake, cache=opt.cache,
                               bake_missing=opt.bake_missing, progress=progress, view=view,
                               lod_scale=opt.lod_scale, yarn_settings=opt.yarn_bake, lod=opt.lod, profile=prof,
-                              memory_budget=opt.memory_budget)
+                              memory_budget=opt.memory_budget, warnings_out=warnings)
     times["tables"] = fibers.table_seconds if fibers is not None else 0.0
     if volumes is not None:
         times["tables"] += volumes.table_seconds

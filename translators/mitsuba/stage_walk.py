@@ -151,6 +151,15 @@ class _Walker:
                     yield Placement(proto_prim, xform, path, iid)
 
 
+def _checked(pl: Placement) -> Placement:
+    # A NaN or infinite transform (xformOps, or an instancer's positions, orientations or
+    # scales) makes NaN geometry that fails far from its cause (an SVD, a black image).
+    if not np.all(np.isfinite(pl.xform)):
+        raise ValueError(f"{pl.path}: its world transform is not finite (NaN or Inf in the xformOps of the "
+                         "prim or an ancestor, or in a PointInstancer's positions, orientations or scales)")
+    return pl
+
+
 def walk(
     stage: Usd.Stage,
     time: Usd.TimeCode = Usd.TimeCode.Default(),
@@ -162,4 +171,4 @@ def walk(
     instances expanded. Point-instancer transforms compose as
     prim-relative-to-prototype-root @ instance (incl. the root's local xform) @ instancer world.
     """
-    return _Walker(stage, time, purposes, types).walk()
+    return (_checked(pl) for pl in _Walker(stage, time, purposes, types).walk())

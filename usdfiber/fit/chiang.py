@@ -231,8 +231,8 @@ def _attenuation(F: np.ndarray, length: np.ndarray, sigma_a: np.ndarray) -> np.n
 
 
 def _logistic_cdf(s: float):
-    lo = 1.0 / (1.0 + math.exp(math.pi / s))
-    hi = 1.0 / (1.0 + math.exp(-math.pi / s))
+    e = math.exp(-math.pi / s)   # in (0, 1): no overflow for a very small scale s
+    lo, hi = e / (1.0 + e), 1.0 / (1.0 + e)
 
     def cdf(x: np.ndarray) -> np.ndarray:
         return (1.0 / (1.0 + np.exp(-np.clip(x / s, -700.0, 700.0))) - lo) / (hi - lo)

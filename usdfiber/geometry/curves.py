@@ -36,6 +36,7 @@ from pxr import Usd, UsdGeom
 from usdfiber.errors import PrimError
 
 __all__ = [
+    "NORMALS_CHUNK",
     "UNIFORM_SCALE_RTOL",
     "CurveError",
     "axis_scales",
@@ -528,6 +529,12 @@ def _reflector(v: np.ndarray) -> np.ndarray:
     return h
 
 
+#: Segments whose reference normals are formed together: the scan holds about 600 bytes per
+#: segment (3x3 products, reflectors, temporaries), so a chunk peaks near 150 MB whatever the
+#: number of segments (whole, the 9M segments of a long yarn expanded at full detail took 5 GB).
+NORMALS_CHUNK = 1 << 18
+
+
 def reference_normals(geom: CurveGeometry) -> np.ndarray:
     """(S, 3) unit normals, perpendicular to each segment's tangent at its midpoint.
 
@@ -535,12 +542,31 @@ def reference_normals(geom: CurveGeometry) -> np.ndarray:
     of each curve, starting from world +z projected onto the first segment's normal plane (+x if
     the tangent is within ~25 degrees of z). The per-step rotations are independent of the frame,
     so their products are formed with a segmented log-depth scan: vectorized even for a single
-    very long curve. Curves are runs of equal (segment_part, segment_curve).
+    very long curve. Curves are runs of equal (segment_part, segment_curve); they are formed in
+    chunks of whole curves of about :data:`NORMALS_CHUNK` segments (the same values: each
+    curve's frame depends on its own segments only).
     """
     s = geom.segment_count
     if s == 0:
         return np.zeros((0, 3))
-    idx = geom.segment_start[:, None] + np.arange(4)
+    new = np.ones(s, bool)
+    new[1:] = (geom.segment_curve[1:] != geom.segment_curve[:-1]) | (
+        geom.segment_part[1:] != geom.segment_part[:-1])
+    starts = np.flatnonzero(new)
+    out = np.empty((s, 3))
+    lo = 0
+    while lo < s:
+        k = np.searchsorted(starts, lo + NORMALS_CHUNK)   # the first curve start at or past the chunk's end
+        hi = int(starts[k]) if k < len(starts) else s
+        out[lo:hi] = _reference_normals(geom, lo, hi, new[lo:hi])
+        lo = hi
+    return out
+
+
+def _reference_normals(geom: CurveGeometry, lo: int, hi: int, new: np.ndarray) -> np.ndarray:
+    """:func:`reference_normals` of segments ``lo:hi`` (whole curves; ``new`` marks their starts)."""
+    s = hi - lo
+    idx = geom.segment_start[lo:hi, None] + np.arange(4)
     p = geom.points[idx]
     x = np.einsum("j,sjk->sk", _MID_W, p)
     d = np.einsum("j,sjk->sk", _MID_DW, p)
@@ -549,10 +575,8 @@ def reference_normals(geom: CurveGeometry) -> np.ndarray:
     d[tiny] = p[tiny, 3] - p[tiny, 0]
     d[np.linalg.norm(d, axis=1) == 0] = (1.0, 0.0, 0.0)
     tan = _unit(d)
+    del p, d
 
-    new = np.ones(s, bool)
-    new[1:] = (geom.segment_curve[1:] != geom.segment_curve[:-1]) | (
-        geom.segment_part[1:] != geom.segment_part[:-1])
     first = np.maximum.accumulate(np.where(new, np.arange(s), 0))
 
     # Step i-1 -> i as a rotation (product of two reflections), identity at curve starts.

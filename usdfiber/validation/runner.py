@@ -213,14 +213,48 @@ def variant_problems(stage: Usd.Stage, ctx: UsdValidation.ValidationContext,
     return out
 
 
+#: Entry-point group of the renderer bridges' checks: each names a function
+#: ``(stage, time) -> list[Problem]`` that reports what that bridge's translation would refuse
+#: (cameras, lights, meshes, ...), so that ``check`` and ``render`` agree. The core never imports
+#: the bridges; it loads these.
+CHECK_GROUP = "usdfiber.checks"
+
+
+def bridge_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]:
+    """The problems the installed renderer bridges report (:data:`CHECK_GROUP`); a bridge that
+    cannot be imported (its renderer is not installed) reports nothing, one whose checks fail
+    (its renderer cannot run here) a warning, ``RendererCheckSkipped``."""
+    from importlib.metadata import entry_points
+
+    problems: list[Problem] = []
+    for ep in sorted(entry_points(group=CHECK_GROUP), key=lambda e: e.name):
+        try:
+            fn = ep.load()
+        except ImportError:
+            continue
+        try:
+            problems.extend(fn(stage, time))
+        except Exception as exc:
+            # The renderer cannot run here (no LLVM for Mitsuba, say) or the bridge failed: one
+            # line, and a warning only, so that checking works on machines that do not render.
+            problems.append(Problem("RendererCheckSkipped", Severity.WARNING, "/", None,
+                                    f"the {ep.name} renderer's checks could not run: "
+                                    f"{_plugin.one_line_reason(exc)}; expected a working renderer "
+                                    f"(`usdfiber render` will fail the same way)"))
+    return problems
+
+
 def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
-                time: float | None = None, all_variants: bool = False) -> CheckReport:
+                time: float | None = None, all_variants: bool = False,
+                bridges: bool = True) -> CheckReport:
     """Check one stage with every usdFiber validator.
 
     ``time``: check values at that time code only (``usdfiber check --time``); by default
     every default value and every authored time sample. ``all_variants``: also check every
-    variant that is not selected (:func:`variant_problems`). A path that cannot be opened
-    raises :class:`usdfiber.stage_io.StageOpenError`.
+    variant that is not selected (:func:`variant_problems`). ``bridges``: also what the
+    renderer bridges would refuse (:func:`bridge_problems`, at ``time`` or the time a render
+    picks; a render leaves them to its own translation, which refuses the same). A path that
+    cannot be opened raises :class:`usdfiber.stage_io.StageOpenError`.
     """
     if isinstance(stage_or_path, Usd.Stage):
         stage, name = stage_or_path, stage_or_path.GetRootLayer().identifier
@@ -237,6 +271,9 @@ def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
             errors = ctx.Validate(stage, predicate,
                                   UsdValidation.ValidationTimeRange(Usd.TimeCode(float(time))))
     problems.extend(_plugin.from_validation_error(e) for e in errors)
+    if bridges:
+        with captured_stderr():
+            problems.extend(bridge_problems(stage, time))
     if all_variants:
         seen = {(p.code, p.prim, p.attribute, p.message) for p in problems}
         with captured_stderr(), _one_worker():
@@ -246,5 +283,5 @@ def check_stage(stage_or_path: Usd.Stage | str | os.PathLike[str], *,
     return CheckReport(name, sorted(set(problems), key=_sort_key))
 
 
-__all__ = ["CheckReport", "check_stage", "format_problem", "problem_to_dict",
+__all__ = ["CHECK_GROUP", "CheckReport", "bridge_problems", "check_stage", "format_problem", "problem_to_dict",
            "reports_to_json", "summary", "validation_context", "variant_problems"]

@@ -1,0 +1,140 @@
+"""What the Mitsuba bridge refuses, reported by ``usdfiber check`` (entry point ``usdfiber.checks``).
+
+``usdfiber render`` refuses a stage whose render settings, cameras, lights, meshes or point
+instancers cannot be translated. The core's validators know the fiber schema, not these, so
+without this module a stage could pass ``check`` and be refused by ``render``.
+:func:`stage_problems` runs the translation's own functions on those prims
+(:func:`~usdfiber.translators.mitsuba.render_settings.read_render_settings`,
+:func:`~usdfiber.translators.mitsuba.camera.validate_camera`,
+:func:`~usdfiber.translators.mitsuba.lights.light_emitter`,
+:func:`~usdfiber.translators.mitsuba.meshes.mesh_shapes` and the stage walk, which expands
+instancers and refuses non-finite transforms) at the time a render would use, and reports
+each refusal as an error, so that ``check`` and ``render`` agree by construction. Fibers are
+not translated here: their values are the core validators'.
+
+Codes (all errors): ``RenderSettingsInvalid``, ``CameraInvalid``, ``LightInvalid``,
+``MeshInvalid``, ``PlacementInvalid`` (an instancer that cannot be expanded, a transform that
+is not finite).
+"""
+from __future__ import annotations
+
+from typing import Iterator
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender
+
+from usdfiber.errors import layer_path
+from usdfiber.stage_io import default_render_time
+from usdfiber.validation.problems import Problem, Severity
+
+from usdfiber.translators.mitsuba.camera import validate_camera
+from usdfiber.translators.mitsuba.errors import TranslationError
+from usdfiber.translators.mitsuba.lights import light_emitter
+from usdfiber.translators.mitsuba.meshes import mesh_shapes
+from usdfiber.translators.mitsuba.render_settings import read_render_settings
+from usdfiber.translators.mitsuba.stage_walk import Placement, walk
+
+__all__ = ["stage_problems"]
+
+_LIGHTS = (UsdLux.BoundableLightBase, UsdLux.NonboundableLightBase)
+#: Most time samples of one camera or light checked (check without ``--time``).
+_MAX_TIMES = 10_000
+
+
+def _problem(code: str, stage: Usd.Stage, prim: str, attribute: str | None, message: str,
+             time: float | None) -> Problem:
+    p = stage.GetPrimAtPath(prim) if Sdf.Path.IsValidPathString(prim) else Usd.Prim()
+    layer = layer_path(p, attribute) if p else None
+    return Problem(code, Severity.ERROR, prim, attribute, message, layer=layer, time=time)
+
+
+def _from_translation(code: str, stage: Usd.Stage, exc: ValueError, time: float | None) -> Problem:
+    if isinstance(exc, TranslationError):
+        return _problem(code, stage, str(exc.prim), exc.attribute, str(exc.expected), time)
+    prim, _, what = str(exc).partition(": ")   # other refusals read "<prim path>: <what>"
+    return _problem(code, stage, prim if what else "/", None, what or str(exc), time)
+
+
+def _from_walk(stage: Usd.Stage, exc: ValueError, time: float | None) -> Problem:
+    # The walk's errors read "<prim path>: <what>" (an instancer's instance paths carry [i]).
+    text = str(exc)
+    prim, _, what = text.partition(": ")
+    prim = prim.split("[", 1)[0] if what else "/"
+    return _problem("PlacementInvalid", stage, prim, None, what or text, time)
+
+
+def _placements(stage: Usd.Stage, tc: Usd.TimeCode, purposes: tuple[str, ...], types: tuple,
+                problems: list[Problem], time: float | None) -> Iterator[Placement]:
+    """The walk's placements; its first refusal becomes a problem (the walk cannot go on)."""
+    try:
+        yield from walk(stage, tc, purposes, types)
+    except ValueError as exc:
+        problems.append(_from_walk(stage, exc, time))
+
+
+def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]:
+    """Everything ``usdfiber render`` would refuse in the stage's render settings, cameras,
+    lights, meshes and instancers at ``time`` (default: the time a render picks), as errors."""
+    tc = Usd.TimeCode.Default() if time is None else Usd.TimeCode(float(time))
+    if time is None:
+        picked = default_render_time(stage)
+        if picked is not None:
+            tc = Usd.TimeCode(picked[0])
+    at = None if tc.IsDefault() else float(tc.GetValue())
+    problems: list[Problem] = []
+    purposes: tuple[str, ...] = ("default", "render")
+    settings_paths: list[Sdf.Path | None] = [None]
+    settings_paths += [p.GetPath() for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
+    for path in settings_paths:
+        try:
+            info = read_render_settings(stage, path)
+        except ValueError as exc:  # TranslationError included
+            problems.append(_from_translation("RenderSettingsInvalid", stage, exc, at))
+            continue
+        if path is None:
+            purposes = info.included_purposes
+        if info.camera is not None:
+            cam = stage.GetPrimAtPath(info.camera)
+            if not cam or not cam.IsA(UsdGeom.Camera):
+                problems.append(_problem("RenderSettingsInvalid", stage, str(info.path), "camera",
+                                         f"targets {info.camera}, which is not a camera", at))
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Camera):
+            for t in _times(prim, tc, time is None):
+                try:
+                    validate_camera(prim, np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t)), t)
+                except ValueError as exc:  # TranslationError included
+                    problems.append(_from_translation("CameraInvalid", stage, exc,
+                                                      None if t.IsDefault() else float(t.GetValue())))
+                    break
+    cache: dict = {}
+    for pl in _placements(stage, tc, purposes, (UsdGeom.Gprim,), problems, at):
+        if pl.prim.IsA(UsdGeom.Mesh):
+            try:
+                mesh_shapes(pl.prim, pl.xform, tc, material_cache=cache)
+            except ValueError as exc:  # TranslationError included
+                problems.append(_from_translation("MeshInvalid", stage, exc, at))
+    for pl in _placements(stage, tc, purposes, _LIGHTS, problems, at):
+        for t in _times(pl.prim, tc, time is None):
+            xform = pl.xform if t == tc else np.array(UsdGeom.Xformable(pl.prim).ComputeLocalToWorldTransform(t))
+            try:
+                light_emitter(pl.prim, xform, t)
+            except ValueError as exc:  # TranslationError included
+                problems.append(_from_translation("LightInvalid", stage, exc,
+                                                  None if t.IsDefault() else float(t.GetValue())))
+                break
+    return problems
+
+
+def _times(prim: Usd.Prim, tc: Usd.TimeCode, every: bool) -> list[Usd.TimeCode]:
+    """``tc``, and with ``every`` the time samples of the prim's own attributes (a camera's or a
+    light's values are cheap to check at each; at most _MAX_TIMES of them)."""
+    out = [tc]
+    if every:
+        samples: set[float] = set()
+        for attr in prim.GetAuthoredAttributes():
+            samples.update(attr.GetTimeSamples())
+            if len(samples) > _MAX_TIMES:
+                break
+        out += [Usd.TimeCode(t) for t in sorted(samples)[:_MAX_TIMES]]
+    return out
