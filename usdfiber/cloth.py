@@ -139,10 +139,19 @@ def min_distance_between(curves: list[np.ndarray]) -> float:
 
 
 # ----------------------------------------------------------------------------- helpers
-def _check_int(name: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ClothError(f"{name} must be an integer >= {minimum}, got {value!r}")
+def _check_int(name: str, value: Any, minimum: int, maximum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum or (
+            maximum is not None and value > maximum):
+        upto = "" if maximum is None else f" and <= {maximum}"
+        raise ClothError(f"{name} must be an integer >= {minimum}{upto}, got {value!r}")
     return int(value)
+
+
+#: Largest length factor or spacing (mm) a cloth takes: beyond it coordinates overflow float32
+#: (a spacing of 1e308 mm made infinite points).
+MAX_FACTOR = 1e6
+#: Longest satin float: real satins float over 4 to 12 wefts; a float of a million wefts took minutes.
+MAX_FLOATS = 64
 
 
 def _check_pos(name: str, value: Any) -> float:
@@ -150,8 +159,8 @@ def _check_pos(name: str, value: Any) -> float:
         v = float(value)
     except (TypeError, ValueError):
         raise ClothError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise ClothError(f"{name} must be a positive finite number, got {value!r}")
+    if not (math.isfinite(v) and 0 < v <= MAX_FACTOR):
+        raise ClothError(f"{name} must be a positive number up to {MAX_FACTOR:g}, got {value!r}")
     return v
 
 
@@ -540,7 +549,7 @@ def satin(stage: Usd.Stage, path: str | Sdf.Path, *, warps: int = 20, wefts: int
     ``step``: the move number (default :func:`satin_step`, 2 for floats = 4: the 5-harness
     satin). Other parameters as :func:`plain_weave`.
     """
-    floats = _check_int("floats", floats, 1)
+    floats = _check_int("floats", floats, 1, MAX_FLOATS)
     r = floats + 1
     if step is None:
         step = satin_step(floats)

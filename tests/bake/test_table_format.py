@@ -246,3 +246,25 @@ def test_table_error_is_value_error():
     assert issubclass(TableError, ValueError)
     e = TableError("/x.npz", "missing")
     assert e.path == "/x.npz" and e.reason == "missing" and str(e) == "/x.npz: missing"
+
+
+@pytest.mark.parametrize("field, value", [("resolution", None), ("resolution", "30"), ("baked_diameter_um", "x"),
+                                          ("baked_diameter_um", 0), ("eta", "x")])
+def test_crafted_header_with_valid_checksums_is_refused_in_one_line(tmp_path, circle_table, field, value):
+    """A file whose checksums hold but whose header fields have the wrong type or value (a
+    crafted or hand-edited table) is refused on load, in one line: never a traceback, never used."""
+    from usdfiber.bake.storage import write_table_file
+    from usdfiber.bake.table import BcsdfTable
+
+    good = tmp_path / "good.npz"
+    circle_table.save(good)
+    header, arrays = T.read_table(good)
+    header[field] = value
+    bad = tmp_path / "bad.npz"
+    write_table_file(bad, header, arrays)
+    with pytest.raises(TableError, match="bad.npz: "):
+        BcsdfTable.load(bad)
+    out = subprocess.run([sys.executable, "-m", "usdfiber", "table", "inspect", str(bad)],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and "bad.npz" in out.stderr

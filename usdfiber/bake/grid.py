@@ -42,6 +42,10 @@ _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
 
+#: The finest bins: 0.1 deg is 1800 x 3600 outgoing bins per direction (the paper's grid is 2 deg).
+MIN_RESOLUTION_DEG = 0.1
+
+
 @dataclass(frozen=True)
 class Grid:
     """The angular grid of a table (see the module docstring). Angles in radians.
@@ -61,6 +65,9 @@ class Grid:
         d = float(self.resolution_deg)
         if not (math.isfinite(d) and d > 0):
             raise ValueError(f"resolution must be a positive number of degrees, got {self.resolution_deg}")
+        if d < MIN_RESOLUTION_DEG:
+            raise ValueError(f"resolution must be at least {MIN_RESOLUTION_DEG:g} deg (a finer grid has more than "
+                             f"a million bins per direction), got {d:g}")
         n = 90.0 / d
         if abs(n - round(n)) > 1e-9 or round(n) < 1:
             raise ValueError(f"resolution {d:g} deg must divide 90 deg (e.g. 1, 2, 3, 5, 10, 15, 30)")

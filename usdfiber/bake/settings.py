@@ -56,6 +56,13 @@ class BakeError(ValueError):
     """A bake that cannot be done as asked (the message is one line)."""
 
 
+#: Bounds of a bake's counts: beyond them a typing error would run for years or overflow the
+#: tracer's 32-bit counters (a full 2 deg table at 1e12 photons per direction is ~10^6 CPU years).
+MAX_PHOTONS = 10 ** 12
+MAX_BATCHES = 4096
+MAX_BOUNCES = 1 << 20
+
+
 @dataclass(frozen=True)
 class BakeSettings:
     """How a table is baked. Every field changes the result (and so the cache key).
@@ -131,14 +138,17 @@ class BakeSettings:
         if auto and (self.resolution_deg != band_limit.FINEST_DEG or self.incoming_deg is not None):
             raise BakeError("resolution 'auto' chooses the bins and incoming nodes itself: give no resolution "
                             "or incoming spacing with it")
-        if int(self.photons) < 1:
-            raise BakeError(f"photons must be >= 1, got {self.photons}")
-        if self.target_error is not None and not (0 < float(self.target_error) < 1):
-            raise BakeError(f"target error must be in (0, 1), got {self.target_error}")
-        if int(self.batches) < 2:
-            raise BakeError(f"batches must be >= 2 (the error estimate needs a variance), got {self.batches}")
-        if int(self.max_bounces) < 1:
-            raise BakeError(f"max_bounces must be >= 1, got {self.max_bounces}")
+        for name in ("photons", "max_photons"):
+            if not 1 <= getattr(self, name) <= MAX_PHOTONS:
+                raise BakeError(f"{name} must be from 1 to {MAX_PHOTONS:.0e} per direction, got {getattr(self, name)}")
+        if self.target_error is not None and not (1e-4 <= float(self.target_error) < 1):
+            raise BakeError(f"target error must be in [1e-4, 1) (0.01 % already takes 10^4 times the photons "
+                            f"of 1 %), got {self.target_error}")
+        if not 2 <= int(self.batches) <= MAX_BATCHES:
+            raise BakeError(f"batches must be from 2 (the error estimate needs a variance) to {MAX_BATCHES}, "
+                            f"got {self.batches}")
+        if not 1 <= int(self.max_bounces) <= MAX_BOUNCES:
+            raise BakeError(f"max_bounces must be from 1 to {MAX_BOUNCES}, got {self.max_bounces}")
         lv = tuple(float(x) for x in self.levels)
         if not lv or lv[0] != 0.0 or any(b <= a for a, b in zip(lv, lv[1:])) or not all(map(math.isfinite, lv)):
             raise BakeError(f"levels must start at 0 and increase, got {list(self.levels)}")

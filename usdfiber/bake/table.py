@@ -70,7 +70,7 @@ from usdfiber.bake.absorption import level_bracket, log_interpolate
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.lookup import eval_directional, eval_incoming
 from usdfiber.bake.sampler import outgoing_cdfs, sample_outgoing
-from usdfiber.bake.storage import check_layout, read_table_file, write_table_file
+from usdfiber.bake.storage import TableLayoutError, check_layout, read_table_file, write_table_file
 
 __all__ = ["BcsdfTable", "Recoloured"]
 
@@ -161,8 +161,45 @@ class BcsdfTable:
     @classmethod
     def load(cls, path: str | Path) -> "BcsdfTable":
         """Read and verify a table file (TableError for damaged files, TableLayoutError)."""
-        header, arrays = read_table_file(path)
-        return cls(header=header, arrays=arrays, path=str(path))
+        from usdfiber.table_format import TableError
+
+        try:
+            header, arrays = read_table_file(path)
+            table = cls(header=header, arrays=arrays, path=str(path))
+        except (TableError, TableLayoutError):
+            raise
+        except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
+            # A header whose checksums hold but whose fields have the wrong types (crafted).
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise TableError(str(path), f"not a usable table: {reason[:300]}") from None
+        table._check_readable()
+        return table
+
+    def _check_readable(self) -> None:
+        """Refuse (TableError, one line) a file whose checksums hold but whose header or small
+        arrays do not describe a usable table: a grid that cannot be built, a diameter, index or
+        roughness that is not a finite positive number, arrays of the wrong shape, a NaN albedo."""
+        from usdfiber.table_format import TableError
+
+        try:
+            grid = self.grid
+            want = (grid.n_theta_i, grid.n_phi_i)
+            for name in ("albedo", "photons", "rel_error", "band_start"):
+                if tuple(self.arrays[name].shape[:2]) != want:
+                    raise ValueError(f"array {name!r} has shape {self.arrays[name].shape}, the grid {want}")
+            if not np.all(np.isfinite(self.arrays["albedo"])) or self.arrays["albedo"].min() < 0:
+                raise ValueError("the albedo holds NaN, Inf or negative values")
+            if not (0 < self.baked_diameter_um < math.inf):
+                raise ValueError(f"baked_diameter_um is {self.header.get('baked_diameter_um')!r}")
+            for name in ("eta", "beta_deg"):
+                if name in self.header and not math.isfinite(float(self.header[name])):
+                    raise ValueError(f"{name} is {self.header[name]!r}")
+            levels = np.asarray(self.levels, dtype=np.float64)
+            if levels.ndim != 1 or not np.all(np.isfinite(levels)):
+                raise ValueError("the absorption levels are not finite numbers")
+        except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise TableError(self.path or "<table>", f"not a usable table: {reason[:300]}") from None
 
     def save(self, path: str | Path) -> dict[str, Any]:
         """Write the table atomically (compressed); returns the header written."""

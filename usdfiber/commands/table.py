@@ -304,7 +304,19 @@ def _fmt_inputs(inputs: dict[str, Any]) -> str:
 
 
 def run_inspect(args: argparse.Namespace) -> int:
+    """``usdfiber table inspect``: the table's header and summary (one line for a header whose
+    fields have the wrong types, as a crafted file's may)."""
+    from usdfiber.cli import UsageError
+
     table = _load(args.file)
+    try:
+        return _inspect(args, table)
+    except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise UsageError(f"{args.file}: malformed table header: {reason[:300]}") from None
+
+
+def _inspect(args: argparse.Namespace, table: Any) -> int:
     h = table.header
     s = table.summary()
     alb = table.arrays["albedo"][:, :, 0].astype(np.float64)
