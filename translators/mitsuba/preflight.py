@@ -42,34 +42,29 @@ _MAX_TIMES = 10_000
 
 
 def _problem(code: str, stage: Usd.Stage, prim: str, attribute: str | None, message: str,
-             time: float | None) -> Problem:
+             time: Usd.TimeCode) -> Problem:
     p = stage.GetPrimAtPath(prim) if Sdf.Path.IsValidPathString(prim) else Usd.Prim()
     layer = layer_path(p, attribute) if p else None
-    return Problem(code, Severity.ERROR, prim, attribute, message, layer=layer, time=time)
+    return Problem(code, Severity.ERROR, prim, attribute, message, layer=layer,
+                   time=None if time.IsDefault() else float(time.GetValue()))
 
 
-def _from_translation(code: str, stage: Usd.Stage, exc: ValueError, time: float | None) -> Problem:
+def _from_refusal(code: str, stage: Usd.Stage, exc: ValueError, time: Usd.TimeCode) -> Problem:
+    """The problem of a translation's refusal at ``time``: a TranslationError's fields, or the
+    "<prim path>: <what>" of other refusals (the walk's instance paths carry "[i]")."""
     if isinstance(exc, TranslationError):
         return _problem(code, stage, str(exc.prim), exc.attribute, str(exc.expected), time)
-    prim, _, what = str(exc).partition(": ")   # other refusals read "<prim path>: <what>"
-    return _problem(code, stage, prim if what else "/", None, what or str(exc), time)
-
-
-def _from_walk(stage: Usd.Stage, exc: ValueError, time: float | None) -> Problem:
-    # The walk's errors read "<prim path>: <what>" (an instancer's instance paths carry [i]).
-    text = str(exc)
-    prim, _, what = text.partition(": ")
-    prim = prim.split("[", 1)[0] if what else "/"
-    return _problem("PlacementInvalid", stage, prim, None, what or text, time)
+    prim, _, what = str(exc).partition(": ")
+    return _problem(code, stage, prim.split("[", 1)[0] if what else "/", None, what or str(exc), time)
 
 
 def _placements(stage: Usd.Stage, tc: Usd.TimeCode, purposes: tuple[str, ...], types: tuple,
-                problems: list[Problem], time: float | None) -> Iterator[Placement]:
+                problems: list[Problem]) -> Iterator[Placement]:
     """The walk's placements; its first refusal becomes a problem (the walk cannot go on)."""
     try:
         yield from walk(stage, tc, purposes, types)
     except ValueError as exc:
-        problems.append(_from_walk(stage, exc, time))
+        problems.append(_from_refusal("PlacementInvalid", stage, exc, tc))
 
 
 def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]:
@@ -80,7 +75,6 @@ def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]
         picked = default_render_time(stage)
         if picked is not None:
             tc = Usd.TimeCode(picked[0])
-    at = None if tc.IsDefault() else float(tc.GetValue())
     problems: list[Problem] = []
     purposes: tuple[str, ...] = ("default", "render")
     settings_paths: list[Sdf.Path | None] = [None]
@@ -89,7 +83,7 @@ def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]
         try:
             info = read_render_settings(stage, path)
         except ValueError as exc:  # TranslationError included
-            problems.append(_from_translation("RenderSettingsInvalid", stage, exc, at))
+            problems.append(_from_refusal("RenderSettingsInvalid", stage, exc, tc))
             continue
         if path is None:
             purposes = info.included_purposes
@@ -97,31 +91,29 @@ def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]
             cam = stage.GetPrimAtPath(info.camera)
             if not cam or not cam.IsA(UsdGeom.Camera):
                 problems.append(_problem("RenderSettingsInvalid", stage, str(info.path), "camera",
-                                         f"targets {info.camera}, which is not a camera", at))
+                                         f"targets {info.camera}, which is not a camera", tc))
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.Camera):
             for t in _times(prim, tc, time is None):
                 try:
                     validate_camera(prim, np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t)), t)
                 except ValueError as exc:  # TranslationError included
-                    problems.append(_from_translation("CameraInvalid", stage, exc,
-                                                      None if t.IsDefault() else float(t.GetValue())))
+                    problems.append(_from_refusal("CameraInvalid", stage, exc, t))
                     break
     cache: dict = {}
-    for pl in _placements(stage, tc, purposes, (UsdGeom.Gprim,), problems, at):
+    for pl in _placements(stage, tc, purposes, (UsdGeom.Gprim,), problems):
         if pl.prim.IsA(UsdGeom.Mesh):
             try:
                 mesh_shapes(pl.prim, pl.xform, tc, material_cache=cache)
             except ValueError as exc:  # TranslationError included
-                problems.append(_from_translation("MeshInvalid", stage, exc, at))
-    for pl in _placements(stage, tc, purposes, _LIGHTS, problems, at):
+                problems.append(_from_refusal("MeshInvalid", stage, exc, tc))
+    for pl in _placements(stage, tc, purposes, _LIGHTS, problems):
         for t in _times(pl.prim, tc, time is None):
             xform = pl.xform if t == tc else np.array(UsdGeom.Xformable(pl.prim).ComputeLocalToWorldTransform(t))
             try:
                 light_emitter(pl.prim, xform, t)
             except ValueError as exc:  # TranslationError included
-                problems.append(_from_translation("LightInvalid", stage, exc,
-                                                  None if t.IsDefault() else float(t.GetValue())))
+                problems.append(_from_refusal("LightInvalid", stage, exc, t))
                 break
     return problems
 

@@ -244,8 +244,9 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     w, h = resolution
     up = UsdGeom.GetStageUpAxis(stage)
     if cam is not None:
+        cam_xf = np.array(UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), dtype=np.float64)
         try:  # before the view is computed from it
-            validate_camera(cam, UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), tc)
+            validate_camera(cam, cam_xf, tc)
         except TranslationError as exc:
             raise TranslateError(str(exc)) from None
         view = camera_view(cam, tc, w, h)
@@ -355,9 +356,8 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
     # ---- camera ---------------------------------------------------------------------------
     film_extra = {"pixel_format": "rgba"} if opt.alpha or opt.aovs else None
     if cam is not None:
-        xf = np.array(UsdGeom.Xformable(cam).ComputeLocalToWorldTransform(tc), dtype=np.float64)
         try:
-            entries["sensor"] = camera_sensor(cam, xf, tc, w, h, spp=spp, seed=opt.seed, film_extra=film_extra,
+            entries["sensor"] = camera_sensor(cam, cam_xf, tc, w, h, spp=spp, seed=opt.seed, film_extra=film_extra,
                                               conform_policy=settings.aspect_ratio_conform_policy,
                                               depth_of_field=not settings.disable_depth_of_field)
         except TranslationError as exc:

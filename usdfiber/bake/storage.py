@@ -92,7 +92,7 @@ def check_layout(header: Mapping[str, Any], arrays: Mapping[str, np.ndarray], wh
                                f"(this usdfiber reads {LAYOUT} version {LAYOUT_VERSION})")
     try:
         g = Grid.from_header(header["resolution"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:   # AttributeError: not a mapping
         raise TableLayoutError(f"{where}: bad resolution entry in the header: {exc}") from None
     p = arrays["p"]
     K = len(arrays["levels"])

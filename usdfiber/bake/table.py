@@ -165,41 +165,30 @@ class BcsdfTable:
 
         try:
             header, arrays = read_table_file(path)
-            table = cls(header=header, arrays=arrays, path=str(path))
+            table = cls(header=header, arrays=arrays, path=str(path))   # checks the layout
+            table._check_values()
         except (TableError, TableLayoutError):
             raise
         except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
-            # A header whose checksums hold but whose fields have the wrong types (crafted).
+            # Checksums that hold over a header or arrays that do not describe a usable table
+            # (a crafted or hand-edited file): one line, never a traceback, never used.
             reason = " ".join(str(exc).split()) or type(exc).__name__
             raise TableError(str(path), f"not a usable table: {reason[:300]}") from None
-        table._check_readable()
         return table
 
-    def _check_readable(self) -> None:
-        """Refuse (TableError, one line) a file whose checksums hold but whose header or small
-        arrays do not describe a usable table: a grid that cannot be built, a diameter, index or
-        roughness that is not a finite positive number, arrays of the wrong shape, a NaN albedo."""
-        from usdfiber.table_format import TableError
-
-        try:
-            grid = self.grid
-            want = (grid.n_theta_i, grid.n_phi_i)
-            for name in ("albedo", "photons", "rel_error", "band_start"):
-                if tuple(self.arrays[name].shape[:2]) != want:
-                    raise ValueError(f"array {name!r} has shape {self.arrays[name].shape}, the grid {want}")
-            if not np.all(np.isfinite(self.arrays["albedo"])) or self.arrays["albedo"].min() < 0:
-                raise ValueError("the albedo holds NaN, Inf or negative values")
-            if not (0 < self.baked_diameter_um < math.inf):
-                raise ValueError(f"baked_diameter_um is {self.header.get('baked_diameter_um')!r}")
-            for name in ("eta", "beta_deg"):
-                if name in self.header and not math.isfinite(float(self.header[name])):
-                    raise ValueError(f"{name} is {self.header[name]!r}")
-            levels = np.asarray(self.levels, dtype=np.float64)
-            if levels.ndim != 1 or not np.all(np.isfinite(levels)):
-                raise ValueError("the absorption levels are not finite numbers")
-        except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
-            reason = " ".join(str(exc).split()) or type(exc).__name__
-            raise TableError(self.path or "<table>", f"not a usable table: {reason[:300]}") from None
+    def _check_values(self) -> None:
+        """Raise ValueError where the values that the layout check (array shapes, grid) does not
+        cover are unusable: a NaN, infinite or negative albedo, a baked diameter, index or
+        roughness that is not a finite positive number, absorption levels that are not finite."""
+        if not np.all(np.isfinite(self.arrays["albedo"])) or self.arrays["albedo"].min() < 0:
+            raise ValueError("the albedo holds NaN, Inf or negative values")
+        if not (0 < self.baked_diameter_um < math.inf):
+            raise ValueError(f"baked_diameter_um is {self.header.get('baked_diameter_um')!r}")
+        for name in ("eta", "beta_deg"):
+            if name in self.header and not math.isfinite(float(self.header[name])):
+                raise ValueError(f"{name} is {self.header[name]!r}")
+        if not np.all(np.isfinite(np.asarray(self.levels, dtype=np.float64))):
+            raise ValueError("the absorption levels are not finite numbers")
 
     def save(self, path: str | Path) -> dict[str, Any]:
         """Write the table atomically (compressed); returns the header written."""
