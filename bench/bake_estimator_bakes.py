@@ -7,12 +7,16 @@ two estimators, and reports each bake's process CPU time and the table's own err
 (the spread of its independent batches, relative L2 of p per direction: rms, 95th percentile
 and max over the directions). gain = (cpu_plain x e_plain^2) / (cpu_expected x e_expected^2)
 for the rms and for the max. ``--variants`` chooses the bakes: plain, and the expected value
-with its normals shared uniformly (K per event) or adaptively (1 to K per event, the default).
+with its normals shared uniformly (K per event) or adaptively (1 to K per event, the default),
+drawn from the normal distribution and weighted by visibility (the default) or from the visible
+normals (``NAME/visible``).
 
     python bench/bake_estimator_bakes.py --out bench/results/estimator_bakes.json
     python bench/bake_estimator_bakes.py --cases silk:15:100000:15000 --rounds 1 --out /tmp/x.json
     python bench/bake_estimator_bakes.py --variants plain,uniform,adaptive --cases silk:6:100000:15000 \
         --out bench/results/estimator_bakes_allocation.json
+    python bench/bake_estimator_bakes.py --variants plain,adaptive/visible@16,adaptive@16,adaptive@32 \
+        --cases silk:2:1000000:200000:30 --out /tmp/x.json
 """
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ from bake_common import Record  # noqa: E402
 
 
 def bake(fiber: str, resolution: float, photons: int, expected: int, root: str,
-         allocation: str = "uniform", incoming: float | None = None) -> dict:
+         allocation: str = "uniform", incoming: float | None = None, sampler: str = "ndf") -> dict:
     """One bake of the preset's first variant into an empty cache under ``root``."""
     from usdfiber.bake.cache import TableCache
     from usdfiber.bake.requests import requests_from_preset
@@ -39,7 +43,8 @@ def bake(fiber: str, resolution: float, photons: int, expected: int, root: str,
 
     kw: dict = dict(resolution_deg=resolution, photons=photons, batches=4, incoming_deg=incoming)
     if expected:
-        kw.update(estimator=("expected",), expected_normals=expected, expected_allocation=allocation)
+        kw.update(estimator=("expected",), expected_normals=expected, expected_allocation=allocation,
+                  expected_sampler=sampler)
     req = requests_from_preset(fiber)[0]
     c0, w0 = time.process_time(), time.perf_counter()
     res = TableCache(tempfile.mkdtemp(dir=root)).get_or_bake(req, BakeSettings(**kw))
@@ -62,26 +67,28 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=1, help="alternating rounds of the bakes")
     ap.add_argument("--variants", default="plain,uniform",
                     help="bakes of each case, alternating: plain, uniform, adaptive (comma separated; "
-                         "NAME@K: K normals instead of --normals)")
+                         "NAME@K: K normals instead of --normals; NAME/visible: visible normals)")
     ap.add_argument("--out", default="bench/results/estimator_bakes.json")
     args = ap.parse_args()
     rec = Record("estimator_bakes", args)
     rows = []
     with tempfile.TemporaryDirectory() as root:
         variants = args.variants.split(",")
-        def normals(v: str) -> tuple[str, int]:
+        def normals(v: str) -> tuple[str, int, str]:
             name, _, k = v.partition("@")
-            return name, 0 if name == "plain" else int(k or args.normals)
+            name, _, sampler = name.partition("/")
+            return name, 0 if name == "plain" else int(k or args.normals), sampler or "ndf"
 
         for v in variants:                                        # compile the kernels first
-            bake("polyester", 30.0, 1000, normals(v)[1], root, normals(v)[0])
+            name, k, sampler = normals(v)
+            bake("polyester", 30.0, 1000, k, root, name, sampler=sampler)
         for case in args.cases.split(","):
             fiber, res, n_plain, n_ev, *inc = case.split(":")
             for r in range(args.rounds):
                 for v in variants:
-                    name, k = normals(v)
+                    name, k, sampler = normals(v)
                     n = int(n_plain) if name == "plain" else int(n_ev)
-                    row = bake(fiber, float(res), n, k, root, name, float(inc[0]) if inc else None)
+                    row = bake(fiber, float(res), n, k, root, name, float(inc[0]) if inc else None, sampler)
                     row["variant"] = v
                     row["round"] = r
                     row["load"] = [round(x, 2) for x in os.getloadavg()]

@@ -115,6 +115,29 @@ def test_adaptive_allocation_is_unbiased_against_uniform(case):
     assert ev["adaptive"] <= nn["adaptive"] < nn["uniform"], (ev, nn)
 
 
+# Rough silk, the rough circle at grazing incidence (weights <wi, m> / cos(theta_i) cos(theta_m)
+# far from 1 inside, where the walks meet the surface at grazing angles) and rough cotton.
+SAMPLER_CASES = [("silk", 0.5, 0.9, 6.5), ("circle", 1.45, 0.0, 8.0), ("cotton", 0.8, 0.7, 14.0)]
+
+
+@pytest.mark.parametrize("case", SAMPLER_CASES)
+def test_ndf_normals_are_unbiased_against_visible_normals(case):
+    """Normals drawn from D(m) cos(theta_m) and weighted by their visibility (the default)
+    against normals drawn from the visible normals, bin by bin at absorption
+    (``compare_blocks``, false failure 1e-4 per case; the same walks, other normals). Catches
+    a weight without G1(wi) (mass too high by 1 + Lambda(wi): fails the grazing circle and
+    cotton) or without its 1 / cos(theta_m) (cotton; the furnace tests fail too)."""
+    name, theta, phi, beta = case
+    fs = scene(name)
+    res = {smp: trace_many(fs, [(theta, phi)] * 8, 1 << 13, eta=ETA, beta_deg=beta, seed=list(range(400, 408)),
+                           expected=8, histogram=HIST, expected_sampler=smp)
+           for smp in ("visible", "ndf")}
+    a, b = ([bin_direct(r, SIGMA, GRID)[..., None] for r in res[k]] for k in ("visible", "ndf"))
+    c = compare_blocks(a, b, block=1)
+    assert c.agrees(), c
+    assert all(np.array_equal(x.directions, y.directions) for x, y in zip(res["visible"], res["ndf"]))
+
+
 def test_expected_keeps_the_furnace():
     """At zero absorption every photon leaves: the mean exit weight per photon that hit is 1.
     (The rough deep three-lobed profile catches exits deposited through concave sides without
@@ -198,6 +221,36 @@ def test_launches_cut_for_bounded_histograms_give_the_same_photons(monkeypatch):
         assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("copies", [1, 2])
+def test_deposits_to_copies_per_thread_equal_atomic_adds(monkeypatch, copies):
+    """Deposits go as packets to a private copy of the histograms per thread where the copies fit
+    (``_hist_copies``), else atomically to one copy: the same sums, in another order."""
+    fs = scene("silk")
+    dirs = [(0.3, 0.1), (0.9, 2.2)]
+    ref = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=HIST)
+    monkeypatch.setattr(tracer, "_hist_copies", lambda histogram: copies)
+    got = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=HIST)
+    for x, y in zip(ref, got):
+        assert x.histogram.sum() > 0.0 and np.array_equal(x.directions, y.directions)
+        assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("levels", [(0.0,), (0.0, 0.02, 0.3), (0.0, 0.01, 0.05, 0.1, 0.4), tuple(np.linspace(0, 1, 11))])
+def test_histogram_levels_in_padded_packets(levels):
+    """A bin's 2 x levels values are padded to whole packets of at most 8: each level of a
+    several-level histogram equals the one-level histogram of the same photons at its sigma."""
+    h = ExitHistogram.for_grid(GRID, levels)
+    assert h.packet in (2, 4, 8) and h.stride % h.packet == 0 and 2 * len(levels) <= h.stride < 2 * len(levels) + 8
+    fs = scene("silk")
+    many = trace(fs, 0.5, 0.7, 4096, eta=ETA, beta_deg=8.0, seed=3, expected=4, histogram=h).histogram
+    assert many.shape == (len(levels), 2, GRID.n_theta_o * GRID.n_phi_o)
+    for k, sigma in enumerate(levels):
+        one = trace(fs, 0.5, 0.7, 4096, eta=ETA, beta_deg=8.0, seed=3, expected=4,
+                    histogram=ExitHistogram.for_grid(GRID, [sigma])).histogram
+        assert one.sum() > 0.0
+        assert np.allclose(many[k], one[0], rtol=1e-9, atol=1e-12)
+
+
 # ---- settings, bakes and refusals ---------------------------------------------------------------------
 
 def test_expected_settings_and_cache_key():
@@ -213,6 +266,12 @@ def test_expected_settings_and_cache_key():
     assert "expected_allocation" not in BakeSettings(expected_allocation="uniform").result_inputs()
     with pytest.raises(BakeError, match="expected_allocation"):
         BakeSettings(estimator="expected", expected_allocation="greedy")
+    # The normals: "ndf" (the default) in the key; visible normals keep the keys of earlier tables.
+    assert BakeSettings(estimator="expected").result_inputs()["expected_sampler"] == "ndf"
+    assert "expected_sampler" not in BakeSettings(estimator="expected", expected_sampler="visible").result_inputs()
+    assert "expected_sampler" not in plain.result_inputs()
+    with pytest.raises(BakeError, match="expected_sampler"):
+        BakeSettings(estimator="expected", expected_sampler="ggx")
     assert BakeSettings(estimator=("expected", "stratified")).estimator == ("expected", "stratified")
     for bad in (0, 65, 2.5, "4", True):
         with pytest.raises(BakeError, match="expected_normals"):
@@ -231,6 +290,8 @@ def test_expected_refusals():
         trace(fs, 0.3, 0.2, 64, eta=ETA, beta_deg=5.0, expected=4, split=4, histogram=HIST)
     with pytest.raises(ValueError, match="expected_allocation"):
         trace(fs, 0.3, 0.2, 64, eta=ETA, beta_deg=5.0, expected=4, histogram=HIST, expected_allocation="greedy")
+    with pytest.raises(ValueError, match="expected_sampler"):
+        trace(fs, 0.3, 0.2, 64, eta=ETA, beta_deg=5.0, expected=4, histogram=HIST, expected_sampler="ggx")
     r = trace(fs, 0.3, 0.2, 256, eta=ETA, beta_deg=5.0, expected=4, histogram=HIST)
     with pytest.raises(ValueError, match="not one of the expected-value histogram's levels"):
         r.albedo(0.3)

@@ -36,8 +36,8 @@ photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.samplin
 histograms); "split" splits every hit of the outer surface into ``split_walks`` microsurface
 walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits);
 "expected" histograms, in the tracer's kernel, the expected exit of every outer-surface event
-where leaving is for good over up to ``expected_normals`` visible normals (shared among the
-events by ``expected_allocation``), at every absorption level
+where leaving is for good over up to ``expected_normals`` normals (shared among the events by
+``expected_allocation``, drawn as ``expected_sampler`` says), at every absorption level
 (:class:`usdfiber.bake.tracer.ExitHistogram`). All
 give every direction its own random streams (:func:`stream_seed`).
 
@@ -191,7 +191,8 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
                                 max_bounces=int(st.max_bounces), seed=seeds,
                                 cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split,
                                 expected=expected, histogram=hist,
-                                expected_allocation=st.expected_allocation)
+                                expected_allocation=st.expected_allocation,
+                                expected_sampler=st.expected_sampler)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:

@@ -14,7 +14,7 @@ from usdfiber.bake import band_limit
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
            "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
            "render_bake_settings"]
 
@@ -32,7 +32,7 @@ BUILTIN_PROFILE_VERTICES = 512
 #: outer surface split into ``BakeSettings.split_walks`` microsurface walks, those that leave
 #: the fiber deposited with weight 1/K each (:func:`usdfiber.bake.tracer.trace`, fibers
 #: without cuticle scales); "expected", at every event of the outer surface where leaving is
-#: for good, the expected exit over ``BakeSettings.expected_normals`` visible normals is
+#: for good, the expected exit over ``BakeSettings.expected_normals`` microfacet normals is
 #: histogrammed and the walk goes on (same function, fibers without cuticle scales; not with
 #: "split"). All trace every direction with its own random streams.
 ESTIMATORS = ("expected", "reciprocity", "split", "stratified")
@@ -45,6 +45,11 @@ MAX_EXPECTED_NORMALS = 64
 #: Fresnel weight of the event's exiting branch; "uniform", K each (tables baked before the
 #: adaptive allocation existed).
 EXPECTED_ALLOCATIONS = ("adaptive", "uniform")
+#: How the "expected" estimator draws its normals (``BakeSettings.expected_sampler``): "ndf",
+#: from the normal distribution, weighted by their visibility from the incoming direction (the
+#: same expectation for a fraction of the arithmetic); "visible", from the visible normals
+#: (tables baked before "ndf" existed).
+EXPECTED_SAMPLERS = ("ndf", "visible")
 #: The "expected" estimator's memory in the tracer: its in-kernel histograms of one launch at
 #: most (launches are cut at direction boundaries to stay below), and its queue of events
 #: (2^22 events of 84 bytes).
@@ -104,13 +109,16 @@ class BakeSettings:
     auto_resolution: bool = False
     #: Walks per outer-surface hit of the "split" estimator (part of the cache key only with it).
     split_walks: int = 8
-    #: Visible normals per outer-surface event of the "expected" estimator (in the cache key
+    #: Normals per outer-surface event of the "expected" estimator (in the cache key
     #: only with it; bench/REPORT.md, section 7, chose the default); the most per event with
     #: the adaptive allocation.
     expected_normals: int = 8
     #: Normals per event of the "expected" estimator: one of :data:`EXPECTED_ALLOCATIONS` (in
     #: the cache key only with it, and only when adaptive: uniform tables keep earlier keys).
     expected_allocation: str = "adaptive"
+    #: How the "expected" estimator draws its normals: one of :data:`EXPECTED_SAMPLERS` (in the
+    #: cache key only with it, and only when "ndf": tables of visible normals keep earlier keys).
+    expected_sampler: str = "ndf"
 
     def __post_init__(self) -> None:
         # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
@@ -183,6 +191,9 @@ class BakeSettings:
         if self.expected_allocation not in EXPECTED_ALLOCATIONS:
             raise BakeError(f"expected_allocation must be one of {', '.join(EXPECTED_ALLOCATIONS)}, "
                             f"got {self.expected_allocation!r}")
+        if self.expected_sampler not in EXPECTED_SAMPLERS:
+            raise BakeError(f"expected_sampler must be one of {', '.join(EXPECTED_SAMPLERS)}, "
+                            f"got {self.expected_sampler!r}")
         if "expected" in est and "split" in est:
             raise BakeError("estimators 'expected' and 'split' cannot be combined (both replace the exits "
                             "through the outer surface)")
@@ -239,6 +250,8 @@ class BakeSettings:
             d.pop("expected_normals")    # only used by the expected-value estimator
         if "expected" not in self.estimator or self.expected_allocation == "uniform":
             d.pop("expected_allocation")     # uniform: keys of tables baked before it existed
+        if "expected" not in self.estimator or self.expected_sampler == "visible":
+            d.pop("expected_sampler")        # visible normals: keys of tables baked before "ndf"
         if self.incoming_deg is None:
             d.pop("incoming_deg")  # the paper's grid: keys of tables baked before it existed
         if self.auto_resolution:

@@ -49,7 +49,12 @@ microfacet event of a walk on an outer face, the outcome "the branch that ends o
 microsurface, then the fiber for good" is replaced by its expectation
 w E_m[P_side(m) G_leave(h, wo(m)) 1{escapes} 1{settle(wo(m)) in bin}] over the normals m
 visible from wi, estimated with K normals of a randomly shifted rank-1 lattice and histogrammed
-at every absorption level (:class:`ExitHistogram`). On an edge of the outline's convex hull
+at every absorption level (:class:`ExitHistogram`). The normals are drawn from the normal
+distribution D(m) cos(theta_m) and weighted by the visible density over it,
+<wi, m>+ / ((1 + Lambda(wi)) cos(theta_i) cos(theta_m)) (``expected_sampler="ndf"``, the
+default: a logarithm and a sine per normal, where Beckmann's visible-normal sampler inverts
+its distribution numerically, 14x the arithmetic), or from the visible normals themselves
+(``"visible"``, weight 1). On an edge of the outline's convex hull
 (:attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line) every exit escapes;
 on the concave sides an escape ray per normal decides, as the real photon's next ray does. The
 real walk goes on; if it then takes exactly that outcome it ends unrecorded (on the concave
@@ -66,6 +71,7 @@ weight w P_out and continues the other with w (1 - P_out) (Russian roulette belo
 """
 from __future__ import annotations
 
+import importlib
 import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -75,7 +81,7 @@ import numpy as np
 from usdfiber.backend import mitsuba
 from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
-from usdfiber.bake.settings import (EXPECTED_ALLOCATIONS, EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES,
+from usdfiber.bake.settings import (EXPECTED_ALLOCATIONS, EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES, EXPECTED_SAMPLERS,
                                     MAX_EXPECTED_NORMALS, MAX_SPLIT_WALKS)
 
 __all__ = ["ExitHistogram", "FiberScene", "TraceResult", "prepare", "trace", "trace_many"]
@@ -224,8 +230,9 @@ _NEWTON = 48             # bracketed Newton steps of the below-horizon slope inv
 _SPLIT_HITS = 64
 _SPLIT_CHUNK = 1 << 21   # splitting: most walks traced together between phases
 #: Expected-value estimator: the in-kernel histograms of one launch (float64, every level,
-#: weight and weight x L per bin, per direction of the launch) take at most this many bytes;
-#: launches are cut at direction boundaries to stay below it (one direction alone may exceed it).
+#: weight and weight x L per bin, per direction of the launch, with their copies per thread:
+#: :func:`_hist_copies`) take at most this many bytes; launches are cut at direction boundaries
+#: to stay below it (one direction alone may exceed it, with one copy).
 _HIST_BYTES = EXPECTED_HIST_BYTES
 #: Expected-value estimator: most photons per launch at a rough boundary (a phase queues at most
 #: one event per photon and iteration: 2^18 x 8).
@@ -281,8 +288,31 @@ class ExitHistogram:
         return self.n_theta * self.n_phi
 
     @property
+    def packet(self) -> int:
+        """Values per packet of a deposit: 8 float64 (one AVX-512 vector, two AVX2 vectors), or
+        the smallest power of two that holds a bin's 2 x levels values when they are fewer."""
+        return min(8, 1 << max(0, 2 * len(self.levels) - 1).bit_length())
+
+    @property
+    def stride(self) -> int:
+        """float64 values per bin in the launch's histograms: weight and weight x L of every
+        level, padded to whole packets."""
+        return -(-2 * len(self.levels) // self.packet) * self.packet
+
+    @property
     def bytes_per_direction(self) -> int:
-        return len(self.levels) * 2 * self.n_bins * 8
+        return self.stride * self.n_bins * 8
+
+
+def _hist_copies(histogram: ExitHistogram) -> int:
+    """Copies of a launch's histograms that its deposits write: one per CPU thread (packet adds
+    to a private copy, Dr.Jit's ``ReduceMode.Expand``: no atomics) where a direction's copies
+    fit :data:`_HIST_BYTES`, else one shared copy with atomic adds."""
+    mitsuba()  # the JIT variant (and LLVM) before drjit is used
+    import drjit as dr
+
+    threads = max(1, int(dr.thread_count()))
+    return threads if threads * histogram.bytes_per_direction <= _HIST_BYTES else 1
 
 
 def _lattice_generator(K: int) -> int:
@@ -421,7 +451,8 @@ class _Launch:
 
 def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, max_bounces: int,
                  max_steps: int, mode: str, phase_steps: int = 8, split: int = 0, expected: int = 0,
-                 histogram: ExitHistogram | None = None, expected_allocation: str = "adaptive") -> dict:
+                 histogram: ExitHistogram | None = None, expected_allocation: str = "adaptive",
+                 expected_sampler: str = "ndf") -> dict:
     """Trace the photons of ``launch`` (any mix of incoming directions) in one kernel.
 
     Returns numpy arrays ``d`` (n,3), ``L``, ``hit_any``, ``cut``, ``bounces``, ``leaks`` and
@@ -561,11 +592,14 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         hist_first = int(launch.beam.min()) if n else 0
         hist_n = (int(launch.beam.max()) - hist_first + 1) if n else 1
         nlev, nbin = len(histogram.levels), histogram.n_bins
-        hist = dr.zeros(mi.Float64, hist_n * nlev * 2 * nbin)
-        # Atomic adds: a deposit's 2 x levels values are adjacent (bin-major histograms), so
-        # they share a few cache lines. Measured on rough silk (2 deg bins, 11 levels, K = 8):
-        # 1.45x faster than per-thread copies of level-major histograms (bench/REPORT.md, s. 7).
-        hist_mode = dr.ReduceMode.Direct
+        pk_n, pk_g = histogram.stride // histogram.packet, histogram.packet
+        hist = dr.zeros(mi.Float64, hist_n * histogram.stride * nbin)
+        # A deposit's 2 x levels values are adjacent (bin-major histograms) and added as packets
+        # of pk_g values, to a private copy per thread where they fit (no atomics; 1.4x
+        # faster expected-value bakes on rough silk, bench/REPORT.md s. 7), else atomically.
+        hist_mode = dr.ReduceMode.Expand if _hist_copies(histogram) > 1 else dr.ReduceMode.Direct
+        ArrayXf64 = getattr(importlib.import_module(type(hist).__module__), "ArrayXf64")
+        pad64 = mi.Float64(0.0)
         hist_beam = U(launch.beam.astype(np.uint32) - np.uint32(hist_first))
         lev_o = [dr.opaque(F, float(x)) for x in histogram.levels]
         step_inv = dr.opaque(F, 1.0 / histogram.step)
@@ -576,6 +610,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         ev_classes = (sorted({min(1 << i, ev) for i in range(ev.bit_length() + 1)})
                       if expected_allocation == "adaptive" and rough else [ev])
         tilt_o = dr.opaque(F, _EV_TILT * math.atan(max(alpha, 0.0)))
+        ndf_normals = expected_sampler == "ndf"
+        alpha2_o = dr.opaque(F, float(max(alpha, 1e-4)) ** 2)
         ev_events, ev_normals = dr.zeros(U, hist_n), dr.zeros(U, hist_n)
 
     def deposit_expected(hb: Any, L: Any, mask: Any, d: Any, wt: Any, att: list) -> None:
@@ -594,11 +630,15 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         col = dr.select(col >= nph_o, col - nph_o, col)
         # Bin-major: a deposit's 2 x levels values share a few cache lines (level-major, each
         # add was a cache miss of its own: 2.2x the deposit kernel's time at 11 levels).
-        base = (hb * nbin + row * nph_o + col) * (nlev * 2)
+        base = (hb * nbin + row * nph_o + col) * pk_n
+        vals = []
         for k in range(nlev):
             wk = wt * att[k]
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk), base + 2 * k, mask, mode=hist_mode)
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.Float64(wk * L), base + (2 * k + 1), mask, mode=hist_mode)
+            vals += [mi.Float64(wk), mi.Float64(wk * L)]
+        vals += [pad64] * (pk_n * pk_g - len(vals))
+        for q in range(pk_n):
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, ArrayXf64(vals[q * pk_g:(q + 1) * pk_g]), base + q, mask,
+                              mode=hist_mode)
 
     def attenuation(L: Any) -> list:
         """exp(-sigma_k L) of every level, once per event."""
@@ -778,18 +818,31 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         p_ev = V3(e["px"], e["py"], 0.0)
         att = attenuation(e["L"])
         valid = dr.full(B, True, used)
+        if ndf_normals:
+            # The visible density over D(m) cos(theta_m), without its <wi, m>+ / cos(theta_m):
+            # G1(wi) / cos(theta_i) (finite at grazing wi, where G1 falls like cos(theta_i)).
+            vis_w = inv_ev / ((1.0 + _beckmann_lambda(dr, F, wi.z, alpha_o)) * dr.maximum(wi.z, 1e-12))
         for j in range(kn):
             u1 = e["r1"] + j * (1.0 / kn)
             u2 = e["r2"] + ((j * lat_a) % kn) * (1.0 / kn)
             u1 = dr.select(u1 >= 1.0, u1 - 1.0, u1)
             u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
-            m, _ = distr.sample(wi, mi.Point2f(u1, u2))
+            if ndf_normals:
+                # D(m) cos(theta_m) by inversion: tan^2(theta_m) = -alpha^2 ln(1 - u1), phi_m = 2 pi u2.
+                cos_m = dr.rsqrt(dr.fma(-alpha2_o, dr.log(1.0 - u1), 1.0))
+                sin_m = dr.sqrt(dr.maximum(dr.fma(-cos_m, cos_m, 1.0), 0.0))
+                s_phi, c_phi = dr.sincos((2.0 * math.pi) * u2)
+                m = V3(sin_m * c_phi, sin_m * s_phi, cos_m)
+                w_m = vis_w * dr.maximum(dr.dot(wi, m), 0.0) / cos_m
+            else:
+                m, _ = distr.sample(wi, mi.Point2f(u1, u2))
+                w_m = inv_ev
             F_r, wo_r, wo_t = fresnel_branches(wi, V3(m), into)
             wo = V3(dr.normalize(dr.select(into, wo_r, wo_t)))
             p_side = dr.select(into, F_r, 1.0 - F_r)
             g, _, _ = _escape_probability(dr, F, dr.select(into, wo, -wo), e["h"], alpha_o)
             d_out, p_out = settle(V3(frame.to_world(wo * sg)), ngs, p_ev, above_out)
-            wt = e["w"] * p_side * g * inv_ev
+            wt = e["w"] * p_side * g * w_m
             live = valid & (wt > 0.0)
             if not outer_convex:
                 # Off the hull the exit may meet the fiber again: then it is not this outcome.
@@ -1284,7 +1337,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     extra: dict[str, Any] = {}
     if ev:
         extra["w"] = np.asarray(out_w.numpy())
-        extra["hist"] = np.ascontiguousarray(np.asarray(hist.numpy()).reshape(hist_n, nbin, nlev, 2).transpose(0, 2, 3, 1))
+        h = np.asarray(hist.numpy()).reshape(hist_n, nbin, histogram.stride)[:, :, :2 * nlev]
+        extra["hist"] = np.ascontiguousarray(h.reshape(hist_n, nbin, nlev, 2).transpose(0, 2, 3, 1))
         extra["hist_first"] = hist_first
         if rough:
             extra["ev_events"] = np.asarray(ev_events.numpy(), dtype=np.int64)
@@ -1323,6 +1377,7 @@ def trace(
     expected: int = 0,
     histogram: ExitHistogram | None = None,
     expected_allocation: str = "adaptive",
+    expected_sampler: str = "ndf",
 ) -> TraceResult:
     """Trace ``n_photons`` from direction (theta_i, phi_i) (radians, towards the light).
 
@@ -1349,17 +1404,20 @@ def trace(
     fibers; needs ``histogram``, the bins and absorption levels) is the expected-value
     estimator at the outer boundary: at every microfacet event on an outer face of the outline's
     convex hull it histograms the expected exit of the branch that ends outside and leaves the
-    microsurface, over K visible normals (see the module docstring); the result's
+    microsurface, over K normals (see the module docstring); the result's
     ``histogram`` holds those exits, its rows the others. ``expected_allocation``:
     "adaptive" (default) gives each event from 1 to K normals in proportion to the Fresnel
     weight of its exiting branch (:data:`_EV_TILT`), "uniform" K to every event; the result's
-    ``extra`` counts ``expected_events`` and ``expected_normals``. Many directions are faster
+    ``extra`` counts ``expected_events`` and ``expected_normals``. ``expected_sampler``: "ndf"
+    (default) draws the normals from the normal distribution and weights them by their
+    visibility, "visible" from the visible normals (see the module docstring). Many directions are faster
     together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
                       max_steps=max_steps, sampler=sampler, split=split, expected=expected,
-                      histogram=histogram, expected_allocation=expected_allocation)[0]
+                      histogram=histogram, expected_allocation=expected_allocation,
+                      expected_sampler=expected_sampler)[0]
 
 
 def trace_many(
@@ -1380,6 +1438,7 @@ def trace_many(
     expected: int = 0,
     histogram: ExitHistogram | None = None,
     expected_allocation: str = "adaptive",
+    expected_sampler: str = "ndf",
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -1430,6 +1489,8 @@ def trace_many(
     if expected_allocation not in EXPECTED_ALLOCATIONS:
         raise ValueError(f"expected_allocation must be one of {', '.join(EXPECTED_ALLOCATIONS)}, "
                          f"got {expected_allocation!r}")
+    if expected_sampler not in EXPECTED_SAMPLERS:
+        raise ValueError(f"expected_sampler must be one of {', '.join(EXPECTED_SAMPLERS)}, got {expected_sampler!r}")
     if sampler == "sobol" and int(counts.max()) > 1 << 32:
         raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
@@ -1463,9 +1524,9 @@ def trace_many(
     n_forced = np.zeros(nd, dtype=np.int64)
     ev_counts = np.zeros((2, nd), dtype=np.int64)      # expected value: events, normals
     hists = (np.zeros((nd, len(histogram.levels), 2, histogram.n_bins)) if expected else None)
-    # Expected values: a launch spans few enough directions for its histograms to stay below
-    # _HIST_BYTES (launches end at a direction's end instead).
-    span = max(1, _HIST_BYTES // histogram.bytes_per_direction) if expected else nd
+    # Expected values: a launch spans few enough directions for its histograms (with their
+    # copies per thread) to stay below _HIST_BYTES (launches end at a direction's end instead).
+    span = max(1, _HIST_BYTES // (histogram.bytes_per_direction * _hist_copies(histogram))) if expected else nd
     lanes = min(int(batch), _EV_LANES) if expected and alpha > 0.0 else int(batch)
     a = 0
     while a < total:
@@ -1479,7 +1540,8 @@ def trace_many(
         launch = _Launch(beams32, beam, photon, mixes[beam], scramble)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
                            max_steps=int(max_steps), mode=mode, split=int(split), expected=expected,
-                           histogram=histogram, expected_allocation=expected_allocation)
+                           histogram=histogram, expected_allocation=expected_allocation,
+                           expected_sampler=expected_sampler)
         a = b
         hit = out["hit_any"]
         n_hit += np.bincount(beam[hit], minlength=nd)

@@ -90,6 +90,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--expected-allocation", choices=("adaptive", "uniform"), default=None,
                    help="normals per event of --estimator expected: adaptive (default: 1 to K, in "
                         "proportion to the Fresnel weight of the exiting branch) or uniform (K each)")
+    p.add_argument("--expected-sampler", choices=("ndf", "visible"), default=None,
+                   help="how --estimator expected draws its normals: ndf (default: from the normal "
+                        "distribution, weighted by their visibility) or visible (the visible normals, "
+                        "about 1.2x slower at equal error)")
     p.add_argument("--incoming", choices=("centre", "box"), default="centre",
                    help="light of a table node from the bin centre (default, the paper's) or spread "
                         "over the bin (box: a reciprocal bin-averaged table)")
@@ -185,6 +189,8 @@ def _settings(args: argparse.Namespace):
         kw["expected_normals"] = args.expected_normals
     if args.expected_allocation is not None:
         kw["expected_allocation"] = args.expected_allocation
+    if args.expected_sampler is not None:
+        kw["expected_sampler"] = args.expected_sampler
     try:
         return BakeSettings(**kw)
     except (BakeError, ValueError) as exc:
