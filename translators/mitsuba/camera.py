@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from usdfiber.geometry.curves import too_large_text
 from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.render_settings import as_timecode, to_mi_transform
 
@@ -157,6 +158,9 @@ def validate_camera(prim: Usd.Prim, xform: np.ndarray, time: Usd.TimeCode | floa
         raise TranslationError(where, "xformOpOrder", "the camera's world transform is not finite")
     if not abs(np.linalg.det(m[:3, :3])) > 0:
         raise TranslationError(where, "xformOpOrder", "the camera's world transform is singular (a scale of 0)")
+    huge = too_large_text(m[3:, :3], "the camera's world position")
+    if huge:
+        raise TranslationError(where, "xformOpOrder", huge)
 
 
 def camera_sensor(
