@@ -5,7 +5,8 @@ resolution and symmetries, photons, error estimate, absorption levels, storage a
 albedo summary. ``--json`` prints the header and the summary as JSON.
 
 ``plot`` writes a labelled matplotlib figure (:mod:`usdfiber.table_plot`; PNG, PDF or SVG
-by extension), chosen by ``--figure``:
+by extension; ``-o`` an existing directory: ``<FILE's name>-<figure>.png`` in it), chosen by
+``--figure``:
 
 * ``grid`` (the default): the paper's Figure 3 layout, rows: each ``--theta-i`` (default
   -60 -30 0), columns: each ``--psi`` (default 0 60 120), the scattered intensity
@@ -68,6 +69,18 @@ def _nonneg(text: str) -> float:
     return v
 
 
+#: ``table plot --decades``: the log10 range shown. Beyond 30 decades the lower end falls under
+#: anything a table of float photon counts holds (and 10^-decades underflows past ~300).
+MAX_DECADES = 30.0
+
+
+def _decades(text: str) -> float:
+    v = finite_float(text)
+    if not 0 < v <= MAX_DECADES:
+        raise argparse.ArgumentTypeError(f"must be > 0 and at most {MAX_DECADES:g} decades, got {text}")
+    return v
+
+
 def _positive(text: str) -> float:
     v = finite_float(text)
     if v <= 0:
@@ -118,10 +131,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="fiber diameter in um (default: the table's fiber)")
     pp.add_argument("--mu-a", type=_nonneg, nargs=3, default=None, metavar=("R", "G", "B"),
                     help="absorption coefficient per channel, 1/um (instead of --dye)")
-    pp.add_argument("--decades", type=_positive, default=4.0, help="log10 range shown (default 4)")
+    pp.add_argument("--decades", type=_decades, default=4.0,
+                    help=f"log10 range shown, up to {MAX_DECADES:g} (default 4)")
     pp.add_argument("--scale", type=int, default=4, metavar="PX", help="pixels per bin (default 4)")
     pp.add_argument("--smooth", action="store_true", help="bilinear between bin centres instead of bins")
-    pp.add_argument("-o", "--output", required=True, metavar="OUT.png", help="image to write")
+    pp.add_argument("-o", "--output", required=True, metavar="OUT.png",
+                    help="image to write, its format by extension (figures: .png, .pdf, .svg; slice: any "
+                         "OpenImageIO format); an existing directory: FILE's name with -FIGURE.png in it")
     pp.set_defaults(func=run_plot)
     from usdfiber.bake.compression import DEFAULT_BOUND
 
@@ -411,9 +427,26 @@ def false_colour(x: np.ndarray) -> np.ndarray:
     return (1 - t) * _RAMP[i] + t * _RAMP[i + 1]
 
 
+def _plot_output(args: argparse.Namespace) -> str:
+    """Where ``table plot`` writes: ``-o``, or ``<FILE's name>-<figure>.png`` inside ``-o`` when it is
+    a directory; a name without an extension (no format to write) is a usage error."""
+    from usdfiber.cli import UsageError
+
+    out = args.output
+    if os.path.isdir(out):
+        stem = os.path.basename(args.file.rstrip(os.sep))
+        stem = stem[:-4] if stem.lower().endswith(".npz") else stem
+        return os.path.join(out, f"{stem}-{args.figure}.png")
+    if not os.path.splitext(os.path.basename(out))[1]:
+        raise UsageError(f"-o {out}: no extension to choose the image format by; expected e.g. {out}.png, "
+                         f"or an existing directory")
+    return out
+
+
 def run_plot(args: argparse.Namespace) -> int:
     from usdfiber.cli import UsageError
 
+    args.output = _plot_output(args)
     table = _load(args.file)
     fiber = table.header.get("fiber") or {}
     if args.scale < 1 or args.scale > 64:
