@@ -26,7 +26,8 @@ by extension; ``-o`` an existing directory: ``<FILE's name>-<figure>.png`` in it
 ``compress`` rewrites tables in the compact, recolourable layout of
 :mod:`usdfiber.bake.compression` (a low-rank absorption basis stored with blosc2's ZFP codec;
 p within ``--bound``, default 0.01, relative L2 per direction at every checked absorption),
-atomically: ``-o OUT`` (a file, or a directory for several tables) or ``--in-place``;
+atomically: ``-o OUT`` (a file, or a directory for several tables: tables of the same name
+are refused there, before anything is written) or ``--in-place``;
 ``--cache`` compresses every uncompressed table of the table cache (``--cache-dir``, else
 ``$USDFIBER_CACHE_DIR``, else ``~/.cache/usdfiber``) in place, under each key's lock: a render
 reads a compressed table exactly as the uncompressed one (:mod:`usdfiber.bake.cache`). One line
@@ -286,19 +287,39 @@ def run_compress(args: argparse.Namespace) -> int:
     if args.output is not None and len(args.files) > 1 and not os.path.isdir(args.output):
         raise UsageError(f"{args.output}: expected a directory for {len(args.files)} tables (-o OUT)")
     failed = 0
-    for src in args.files:
-        if args.in_place:
-            dst = src
-        elif os.path.isdir(args.output):
-            dst = os.path.join(args.output, os.path.basename(src))
-        else:
-            dst = args.output
+    for src, dst in _compress_targets(args.files, args.output, args.in_place):
         try:
             print(_compress_file(src, dst, args.bound), flush=True)
         except UsageError as exc:
             print(f"usdfiber: error: {exc}", file=sys.stderr)
             failed += 1
     return 2 if failed else 0
+
+
+def _compress_targets(files: list[str], output: str | None, in_place: bool) -> list[tuple[str, str]]:
+    """(source, destination) of each table; a UsageError, before anything is written, when two
+    sources would be written to one file (tables of the same name from different folders into
+    one -o directory, or a table given twice)."""
+    from usdfiber.cli import UsageError
+
+    pairs, seen = [], {}
+    for src in files:
+        if in_place:
+            dst = src
+        elif os.path.isdir(output):
+            dst = os.path.join(output, os.path.basename(src))
+        else:
+            dst = output
+        key = os.path.realpath(dst)
+        if key in seen:
+            first = seen[key]
+            if os.path.realpath(first) == os.path.realpath(src):
+                raise UsageError(f"{src}: given twice; expected each table once")
+            raise UsageError(f"{first} and {src} would both be written to {dst}; expected tables of different "
+                             f"names, or compress them into different directories (or --in-place)")
+        seen[key] = src
+        pairs.append((src, dst))
+    return pairs
 
 
 def _fmt_inputs(inputs: dict[str, Any]) -> str:
