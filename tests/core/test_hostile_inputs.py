@@ -279,7 +279,8 @@ CURVE_CASES = [
          r"an open uniform Catmull-Rom curve needs at least 4"),
     Case("bcc-overflowing-scale", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (3e30, 0, 0), (2, 1, 0)])]),
                                           "--units-per-file-unit", "1e10"), 2,
-         r"c.bcc: points: coordinate 1 becomes 3e\+40 after scaling, beyond the float32 range .*--units-per-file-unit"),
+         r"c.bcc: points: coordinate 1 becomes 3e\+40 after scaling; expected magnitudes below 1e\+18 .*; change "
+         r"--units-per-file-unit"),
     Case("bcc-overflowing-width", _import("c.bcc", _bcc(), "--width", "1e39"), 2,
          r"widths: width 0 becomes 1e\+39 after scaling.*--width"),
     Case("bcc-unknown-preset", _import("c.bcc", _bcc(), "--preset", "kevlar"), 2,
@@ -304,6 +305,16 @@ CURVE_CASES = [
          r"non-finite coordinate"),
     Case("hair-thickness-overflow", _import("h.hair", _hair(thick=[1e30] * 3), "--units-per-file-unit", "1e9"), 2,
          r"widths: width 0 becomes 1e\+39 after scaling"),
+    # Finite values a renderer cannot use: beyond 1e18 (float32 squares overflow) or below float32's
+    # normal range (written as 0: the nominal width of a stage of absurd units drew nothing).
+    Case("bcc-point-huge", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (1e30, 0, 0), (2, 1, 0)])])), 2,
+         r"c.bcc: points: coordinate 1 becomes 1e\+30 after scaling; expected magnitudes below 1e\+18"),
+    Case("bcc-scale-underflow", _import("c.bcc", _bcc(), "--units-per-file-unit", "1e-300"), 2,
+         r"points: coordinate 1 becomes 1e-300 after scaling; expected magnitudes of at least 1.18e-38"),
+    Case("bcc-meters-per-unit-huge", _import("c.bcc", _bcc(), "--meters-per-unit", "1e300"), 2,
+         r"widths: width 0 becomes 1e-305 after scaling; .* change --meters-per-unit"),
+    Case("bcc-width-huge", _import("c.bcc", _bcc(), "--width", "1e30"), 2,
+         r"widths: width 0 becomes 1e\+30 after scaling; expected magnitudes below 1e\+18.*; change --width"),
     Case("curves-directory", lambda tmp: (tmp.joinpath("d.bcc").mkdir(), ["import", str(tmp / "d.bcc"), "-o",
                                                                           str(tmp / "o.usda")])[1], 2,
          r"d.bcc: is a directory, not a curve file"),
@@ -432,3 +443,36 @@ def test_the_corpus_is_large_and_covers_every_category():
 @pytest.mark.parametrize("case", ALL, ids=[c.id for c in ALL])
 def test_hostile_input(case, tmp_path, capsys):
     run_case(case, tmp_path, capsys)
+
+
+#: Command lines argparse refuses: the error is the only line on stderr (no usage block above it).
+ARGPARSE_ERRORS = [
+    ["cloth", "stockinette", "-o", "{tmp}/c.usda", "--rows", "0"],
+    ["cloth", "stockinette", "-o", "{tmp}/c.usda", "--loops", "nan"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--warps", "1e9"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--spacing", "inf"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--floats", "-1"],
+    ["cloth", "plain", "-o", "{tmp}/c.usda", "--depth-of-shade", "nan"],
+    ["cloth", "tartan", "-o", "{tmp}/c.usda"],
+    ["cloth", "plain"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--width", "0"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--meters-per-unit", "nan"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--depth-of-shade", "-1"],
+    ["import", "-o", "{tmp}/o.usda"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--bogus"],
+    ["check", "--time", "soon", "{tmp}/s.usda"],
+    ["presets", "--bogus"],
+    ["render", "{tmp}/s.usda", "--device", "tpu"],
+    ["nosuch"],
+    [],
+]
+
+
+@pytest.mark.parametrize("words", ARGPARSE_ERRORS, ids=[" ".join(w) or "nothing" for w in ARGPARSE_ERRORS])
+def test_command_line_errors_are_one_line(words, tmp_path, capsys):
+    argv = _args(*words)(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "error:" in err and "usage:" not in err, err

@@ -41,16 +41,9 @@ from typing import Any
 from usdfiber.commands.arg_types import add_memory_budget_option, positive_float, positive_int, seed
 
 
-def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Make ``parser`` report command-line errors as one line (no usage block), exit 2."""
-    def error(message: str):
-        parser.exit(2, f"{parser.prog}: error: {message}\n")
-
-    parser.error = error  # type: ignore[method-assign]
-    return parser
-
-
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "bake",
         help="bake the BCSDF tables that stages, presets or parameter files need",

@@ -156,7 +156,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pc.add_argument("--bound", type=_bound, default=DEFAULT_BOUND, metavar="E",
                     help=f"largest relative L2 error of p per direction (default {DEFAULT_BOUND:g})")
     pc.set_defaults(func=run_compress)
-    from usdfiber.commands.bake import one_line_errors
+    from usdfiber.cli import one_line_errors
 
     for parser in (p, pi, pp, pc):
         one_line_errors(parser)
