@@ -211,6 +211,37 @@ def test_check_reports_what_render_refuses(tmp_path, name, edit, code, prim, att
     assert prim.split("/")[-1] in refusal or code in ("AttributeTypeMismatch", "AttributeTokenNotAllowed")
 
 
+@pytest.mark.parametrize("fiber", [True, False], ids=["fiber", "plain"])
+def test_curves_an_instancer_scales_beyond_float32(tmp_path, fiber):
+    """The curves' own check sees the prototype, not the instance a PointInstancer scales by 1e20:
+    check reports what the render does (fiber curves refuse it, plain ones are skipped)."""
+    stage = _base(tmp_path / "scaled.usda")
+    proto = _line(stage, "/World/Scatter/Protos/Hair", 0.0, 0.01)
+    if fiber:
+        proto.GetPrim().ApplyAPI("FiberAPI")
+        proto.GetWidthsAttr().Set(Vt.FloatArray([0.0]))  # a width of 0 is fine at any scale
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Scatter"))
+    pi.GetPrototypesRel().AddTarget(proto.GetPath())
+    pi.CreateProtoIndicesAttr(Vt.IntArray([0, 1, 1]))
+    pi.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0.5, 0), Gf.Vec3f(0, 0.2, 0), Gf.Vec3f(0, 0.3, 0)]))
+    pi.CreateScalesAttr(Vt.Vec3fArray([Gf.Vec3f(1, 1, 1), Gf.Vec3f(1, 1, 1), Gf.Vec3f(1e20, 1e20, 1e20)]))
+    report = check_stage(stage)
+    found = [p for p in report.problems if p.prim == "/World/Scatter"]
+    assert [(p.code, p.severity.value) for p in found] == (
+        [("PlacementInvalid", "error")] if fiber else [("PlainCurvesSkipped", "warning")]), report.problems
+    assert "/World/Scatter[2]/World/Scatter/Protos/Hair: in world space" in found[0].message
+    assert "magnitude 1e+18 or more" in found[0].message
+    refusal = _render_refuses(stage)
+    if fiber:
+        assert refusal is not None and "/World/Scatter/Protos/Hair" in refusal and "1e+18" in refusal
+    else:
+        assert refusal is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tr = translate_stage(stage, _options())
+        assert any("Hair" in w and "skipped" in w and "1e+18" in w for w in tr.warnings), tr.warnings
+
+
 def test_a_light_broken_at_one_time_sample(tmp_path):
     """Without --time, check looks at every sample of a light or camera; with one, at that time,
     as a render of that frame does."""

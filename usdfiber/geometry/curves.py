@@ -44,6 +44,7 @@ __all__ = [
     "axis_scales",
     "too_large",
     "too_large_text",
+    "world_points_near_limit",
     "negative_vertex_widths",
     "CurveGeometry",
     "curves_from_prim",
@@ -78,6 +79,19 @@ def too_large(values: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         big = np.isfinite(values) & (np.abs(values) >= MAX_COORDINATE)
     return np.flatnonzero(big.reshape(len(values), -1).any(axis=1))
+
+
+def world_points_near_limit(points: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``points`` in world space (``m``: a row-vector local-to-world matrix) when a cheap bound of
+    their magnitude there reaches :data:`MAX_COORDINATE` (then :func:`too_large` says which are
+    beyond), else an empty array: the common case costs two passes and no copy."""
+    if points.size:
+        m = np.asarray(m, dtype=np.float64)
+        lo, hi = float(points.min()), float(points.max())
+        reach = max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
+        if reach >= MAX_COORDINATE:  # not when NaN: the finiteness checks'
+            return points.astype(np.float64) @ m[:3, :3] + m[3, :3]
+    return np.zeros((0, 3))
 
 
 def too_large_text(values: np.ndarray, noun: str) -> str | None:

@@ -70,7 +70,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from usdfiber.errors import PrimError
 from usdfiber.geometry.curves import (MAX_COORDINATE, TOO_LARGE_EXPECTED, axis_scales, curves_from_prim,
-                                      negative_vertex_widths, too_large)
+                                      negative_vertex_widths, too_large, world_points_near_limit)
 from usdfiber.spec.attributes import Fiber, Yarn
 from usdfiber.stage_io import animated_only
 from usdfiber.spec.yarn import yarn_diameter
@@ -661,7 +661,7 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
         world = np.asarray(world) if _finite_matrix(world) else None
         big, placed, where = too_large(points), points, ""
         if not big.size and world is not None:
-            placed = _world_points(points, world)
+            placed = world_points_near_limit(points, world)
             big, where = too_large(placed), "in world space (after the local-to-world transform) "
         if big.size:
             col.add("PointsTooLarge", err, points_attr,
@@ -754,17 +754,6 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
 
 def _vec(p: np.ndarray) -> str:
     return "(" + ", ".join(f"{float(x):g}" for x in p) + ")"
-
-
-def _world_points(points: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """The points in world space (``m``: row-vector local-to-world) when a cheap bound of their
-    magnitude reaches :data:`MAX_COORDINATE`, else the empty array (nothing to look at)."""
-    if points.size:
-        lo, hi = float(points.min()), float(points.max())
-        reach = max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
-        if reach >= MAX_COORDINATE:  # not when NaN: the finiteness check's
-            return points.astype(np.float64) @ m[:3, :3] + m[3, :3]
-    return np.zeros((0, 3))
 
 
 def _animated_only_problems(prim: Usd.Prim, points_attr: Usd.Attribute) -> list[Problem]:
