@@ -242,6 +242,23 @@ def test_curves_an_instancer_scales_beyond_float32(tmp_path, fiber):
         assert any("Hair" in w and "skipped" in w and "1e+18" in w for w in tr.warnings), tr.warnings
 
 
+def test_a_light_the_render_leaves_out_is_a_check_warning(tmp_path):
+    """A negative intensity, a light type without a Mitsuba emitter: the render skips the light
+    with a warning (and may fall back to its default rig); check warns the same."""
+    stage = _base(tmp_path / "skipped.usda")
+    stage.GetPrimAtPath("/World/Key").GetAttribute("inputs:intensity").Set(-2.0)
+    UsdLux.CylinderLight.Define(stage, "/World/Tube")
+    found = {(p.code, p.prim, p.attribute, p.severity.value) for p in check_stage(stage).problems}
+    assert ("LightSkipped", "/World/Key", "inputs:intensity", "warning") in found, found
+    assert ("LightSkipped", "/World/Tube", None, "warning") in found, found
+    assert _render_refuses(stage) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tr = translate_stage(stage, _options())
+    assert any(w.startswith("/World/Key.inputs:intensity: negative intensity") for w in tr.warnings)
+    assert any(w.startswith("/World/Tube: ") and "skipped" in w for w in tr.warnings), tr.warnings
+
+
 def test_a_light_broken_at_one_time_sample(tmp_path):
     """Without --time, check looks at every sample of a light or camera; with one, at that time,
     as a render of that frame does."""

@@ -12,12 +12,13 @@ instancers and refuses non-finite transforms) at the time a render would use, an
 each refusal as an error, so that ``check`` and ``render`` agree by construction. Fibers are
 not translated here: their values are the core validators'.
 
-Codes (errors, but for one warning): ``RenderSettingsInvalid``, ``CameraInvalid``, ``LightInvalid``,
+Codes (errors, but for two warnings): ``RenderSettingsInvalid``, ``CameraInvalid``, ``LightInvalid``,
 ``MeshInvalid``, ``PlacementInvalid`` (an instancer that cannot be expanded, a transform that
 is not finite, fiber curves a PointInstancer places beyond the float32 bound of
 :data:`~usdfiber.geometry.curves.MAX_COORDINATE`: the curves' own check sees their prototype,
 not its instances); the warning ``PlainCurvesSkipped`` for plain curves placed so (the render
-skips them).
+skips them), and ``LightSkipped`` for a light the render leaves out (a negative intensity, a light
+type without a Mitsuba emitter).
 """
 from __future__ import annotations
 
@@ -126,9 +127,12 @@ def stage_problems(stage: Usd.Stage, time: float | None = None) -> list[Problem]
         for t in _times(pl.prim, tc, time is None):
             xform = pl.xform if t == tc else np.array(UsdGeom.Xformable(pl.prim).ComputeLocalToWorldTransform(t))
             try:
-                light_emitter(pl.prim, xform, t)
+                entry, warns = light_emitter(pl.prim, xform, t)
             except ValueError as exc:  # TranslationError included
                 problems.append(_from_refusal("LightInvalid", stage, exc, t))
+                break
+            if entry is None and warns:  # the render leaves the light out, with this warning
+                problems.append(_skipped_light(stage, str(pl.prim.GetPath()), warns[-1], t))
                 break
     return problems
 
@@ -157,6 +161,15 @@ def _instanced_curves_beyond(pl: Placement, tc: Usd.TimeCode, seen: dict) -> str
         if huge:
             return where + huge
     return None
+
+
+def _skipped_light(stage: Usd.Stage, prim: str, warning: str, time: Usd.TimeCode) -> Problem:
+    """``LightSkipped`` (a warning) from the render's "<prim>[.<attribute>]: <why>" for a light it
+    leaves out (a negative intensity, a light type Mitsuba has no emitter for)."""
+    rest = warning[len(prim):] if warning.startswith(prim) else ": " + warning
+    attribute, _, why = rest[1:].partition(": ") if rest.startswith(".") else (None, "", rest[2:])
+    return _problem("LightSkipped", stage, prim, attribute, why, time,
+                    Severity.WARNING)
 
 
 def _times(prim: Usd.Prim, tc: Usd.TimeCode, every: bool) -> list[Usd.TimeCode]:
