@@ -120,6 +120,8 @@ C3, TOK = Sdf.ValueTypeNames.Color3f, Sdf.ValueTypeNames.Token
 CASES = [
     ("camera-focal-zero", _attr("/World/Cam", "focalLength", F, 0.0), "CameraInvalid", "/World/Cam", "focalLength"),
     ("camera-focal-nan", _attr("/World/Cam", "focalLength", F, NAN), "CameraInvalid", "/World/Cam", "focalLength"),
+    ("camera-aperture-180-degrees", _attr("/World/Cam", "horizontalAperture", F, 1e30), "CameraInvalid", "/World/Cam",
+     "horizontalAperture"),
     ("camera-vaperture-zero", _attr("/World/Cam", "verticalAperture", F, 0.0), "CameraInvalid", "/World/Cam",
      "verticalAperture"),
     ("camera-clip-reversed", _attr("/World/Cam", "clippingRange", F2, Gf.Vec2f(10, 1)), "CameraInvalid",
@@ -309,3 +311,23 @@ def test_a_renderer_that_cannot_run_is_a_one_line_warning(tmp_path, monkeypatch)
     assert report.errors == []
     [w] = [p for p in report.warnings if p.code == "RendererCheckSkipped"]
     assert "needs libLLVM" in w.message and "\n" not in w.message
+
+
+def test_a_scene_mitsuba_refuses_is_a_one_line_refusal(tmp_path, monkeypatch):
+    """A value the translation's checks let through and Mitsuba refuses when it builds the scene
+    (as a field of view of 180 degrees did) is a one-line refusal, not a traceback."""
+    from usdfiber.backend import mitsuba
+
+    mi = mitsuba()
+    load = mi.load_dict
+
+    def refuse(entries, *args, **kwargs):
+        if "sensor" not in entries:  # shapes and emitters are loaded one by one before the scene
+            return load(entries, *args, **kwargs)
+        raise RuntimeError('[parser.cpp:1718] At dictionary node "sensor": failed\n  more detail')
+
+    monkeypatch.setattr(mi, "load_dict", refuse)
+    with warnings.catch_warnings(), pytest.raises(TranslateError) as e:
+        warnings.simplefilter("ignore")
+        translate_stage(_base(tmp_path / "s.usda"), _options())
+    assert str(e.value).startswith("Mitsuba could not build the scene: [parser.cpp:1718]") and "\n" not in str(e.value)
