@@ -139,6 +139,8 @@ CASES = [
      "inputs:exposure"),
     ("light-color-nan", _attr("/World/Key", "inputs:color", C3, Gf.Vec3f(NAN, 1, 1)), "LightInvalid",
      "/World/Key", "inputs:color"),
+    ("light-rect-huge", _attr("/World/Fill", "inputs:width", F, 1e30), "LightInvalid", "/World/Fill", "inputs:width"),
+    ("light-rect-inf", _attr("/World/Fill", "inputs:height", F, INF), "LightInvalid", "/World/Fill", "inputs:height"),
     ("light-rect-zero", _attr("/World/Fill", "inputs:width", F, 0.0), "LightInvalid", "/World/Fill",
      "inputs:width"),
     ("mesh-index-out-of-range", _attr("/World/Card", "faceVertexIndices", Sdf.ValueTypeNames.IntArray,
