@@ -345,6 +345,13 @@ def test_points_and_widths_too_large_in_world_space():
     xf.AddTranslateOp().Set(Gf.Vec3d(0, 0, -1e30))
     assert "PointsTooLarge" in codes(check_curves_prim(prim))
     assert "WidthsTooLarge" not in codes(check_curves_prim(prim))
+    # A finite matrix that takes finite points past float64 (Inf in world space) is beyond too.
+    far = UsdGeom.Xform.Define(stage, "/Farther")
+    far.AddTransformOp().Set(Gf.Matrix4d(Gf.Vec4d(1e300, 1e300, 1e300, 1)))
+    pts = curve_points([4])
+    pts[2, 0] = 1e10
+    p = only(check_curves_prim(add_curves(stage, "/Farther/F", [4], points=pts)), "PointsTooLarge")
+    assert p.message.startswith("in world space") and "point 2 has" in p.message
 
 
 def test_zero_length_curve():

@@ -27,6 +27,7 @@ vertex widths overshooting below zero) Mitsuba renders no surface: that is warne
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -88,9 +89,15 @@ def world_points_near_limit(points: np.ndarray, m: np.ndarray) -> np.ndarray:
     if points.size:
         m = np.asarray(m, dtype=np.float64)
         lo, hi = float(points.min()), float(points.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return np.zeros((0, 3))  # NaN or Inf authored: the finiteness checks'
         reach = max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
-        if reach >= MAX_COORDINATE:  # not when NaN: the finiteness checks'
-            return points.astype(np.float64) @ m[:3, :3] + m[3, :3]
+        if reach >= MAX_COORDINATE:
+            with np.errstate(over="ignore", invalid="ignore"):
+                world = points.astype(np.float64) @ m[:3, :3] + m[3, :3]
+            # Finite points that overflow float64 there are beyond the limit too.
+            big = np.finfo(np.float64).max
+            return np.nan_to_num(world, nan=big, posinf=big, neginf=-big)
     return np.zeros((0, 3))
 
 
