@@ -351,7 +351,7 @@ def test_points_and_widths_too_large_in_world_space():
     pts = curve_points([4])
     pts[2, 0] = 1e10
     p = only(check_curves_prim(add_curves(stage, "/Farther/F", [4], points=pts)), "PointsTooLarge")
-    assert p.message.startswith("in world space") and "point 2 has" in p.message
+    assert p.message.startswith("in world space") and "3 points (1, 2, 3) have" in p.message
 
 
 def test_zero_length_curve():

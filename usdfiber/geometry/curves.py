@@ -240,7 +240,8 @@ def axis_scales(m3: np.ndarray) -> tuple[np.ndarray, float, bool]:
     """(axis scales, their geometric mean, whether they differ beyond :data:`UNIFORM_SCALE_RTOL`)
     of the linear part ``m3`` (3x3) of a transform: the rule for a curve's radius under it."""
     sv = np.linalg.svd(np.asarray(m3, dtype=np.float64), compute_uv=False)
-    scale = float(np.prod(sv) ** (1.0 / 3.0))
+    with np.errstate(over="ignore"):  # scales past 1e100: Inf, which the bounds refuse
+        scale = float(np.prod(sv) ** (1.0 / 3.0))
     return sv, scale, bool(sv[0] - sv[-1] > UNIFORM_SCALE_RTOL * sv[0])
 
 

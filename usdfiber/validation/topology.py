@@ -445,9 +445,10 @@ def _is_uniform_fast(m: Gf.Matrix4d) -> bool:
     """True for the common case of a transform without scale or with one uniform scale
     (rows of the 3x3 part orthogonal and of equal length), without an SVD."""
     a = np.asarray(m)[:3, :3]
-    g = a @ a.T
-    d = float(g[0, 0])
-    return d > 0 and bool(np.all(np.abs(g - d * np.eye(3)) <= 1e-9 * d))
+    with np.errstate(over="ignore", invalid="ignore"):  # scales past 1e154: not uniform here, the SVD decides
+        g = a @ a.T
+        d = float(g[0, 0])
+        return d > 0 and bool(np.all(np.abs(g - d * np.eye(3)) <= 1e-9 * d))
 
 
 def _is_number(v: object) -> bool:
@@ -726,7 +727,8 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
             big = too_large(widths)
             if not big.size and world is not None and wmax > 0:
                 # Widths scale by the geometric mean of the axis scales (as the renderer does).
-                scaled = widths * abs(float(np.linalg.det(world[:3, :3]))) ** (1.0 / 3.0)
+                with np.errstate(over="ignore"):  # a determinant past float64: beyond the bound too
+                    scaled = widths * abs(float(np.linalg.det(world[:3, :3]))) ** (1.0 / 3.0)
                 big, where = too_large(scaled), "in world space (scaled by the local-to-world transform) "
             if big.size:
                 col.add("WidthsTooLarge", err, widths_attr,
