@@ -28,6 +28,15 @@ class UsageError(Exception):
     """A problem with the user's input, reported as ``usdfiber: error: <message>``."""
 
 
+def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Make ``parser`` report command-line errors as one line (no usage block), exit 2."""
+    def error(message: str):
+        parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+    parser.error = error  # type: ignore[method-assign]
+    return parser
+
+
 def command_entry_points() -> list[EntryPoint]:
     """The installed sub-commands, in declaration order; the first of a repeated name wins."""
     seen: dict[str, EntryPoint] = {}
@@ -60,6 +69,7 @@ def build_parser(commands: dict[str, Callable[..., None]] | None = None) -> argp
         prog="usdfiber",
         description="Physically based textile fibers in OpenUSD.",
     )
+    one_line_errors(parser)
     parser.add_argument("--version", action="version", version=f"usdfiber {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True

@@ -73,6 +73,8 @@ from typing import Any
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
+from usdfiber.geometry.curves import MAX_COORDINATE, TOO_LARGE_EXPECTED
+
 from usdfiber import authoring
 from usdfiber.memory_budget import MemoryBudget
 from usdfiber.spec.attributes import Fiber
@@ -412,17 +414,26 @@ def _positive(name: str, value: Any) -> float:
 #: Peak bytes per imported point (the file's float32, the scaled float64 copy, USD's float32
 #: arrays, widths and the written layer), rounded up.
 BYTES_PER_IMPORTED_POINT = 160
-#: The largest finite float32: USD stores points and widths as float32.
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: The smallest normal float32: USD stores points and widths as float32, and smaller non-zero
+#: values lose their precision there, or become 0 (a width of 0 draws nothing).
+_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
 
 
-def _finite_in_usd(values: np.ndarray, path: Any, attribute: str, what: str, options: str) -> None:
-    """Raise ValueError when scaled ``values`` overflow USD's float32 (they would be written as inf)."""
-    big = ~(np.abs(values) <= _FLOAT32_MAX)
-    if big.any():
-        i = int(np.flatnonzero(big.reshape(len(values), -1).any(axis=1))[0])
-        raise ValueError(f"{_name(path)}: {attribute}: {what} {i} becomes {np.ravel(values[i])[0]:g} after "
-                         f"scaling, beyond the float32 range of USD (|x| <= {_FLOAT32_MAX:.4g}); lower {options}")
+def _finite_in_usd(values: np.ndarray, path: Any, attribute: str, what: str, fix: str) -> None:
+    """Raise ValueError when scaled ``values`` are too large to render (:data:`MAX_COORDINATE`:
+    float32 squares overflow, or the value itself) or when non-zero ones fall below float32's
+    normal range (they would be written as 0 or lose their precision)."""
+    with np.errstate(invalid="ignore"):
+        mag = np.abs(values)
+        big = ~(mag < MAX_COORDINATE)
+        small = (mag > 0) & (mag < _FLOAT32_TINY)
+    for bad, how in ((big, TOO_LARGE_EXPECTED),
+                     (small, f"expected magnitudes of at least {_FLOAT32_TINY:.3g} (float32's smallest normal "
+                             f"value; smaller ones are written as 0)")):
+        if bad.any():
+            i = int(np.flatnonzero(bad.reshape(len(values), -1).any(axis=1))[0])
+            v = np.ravel(values[i])[np.flatnonzero(np.ravel(bad[i]))[0]]
+            raise ValueError(f"{_name(path)}: {attribute}: {what} {i} becomes {v:g} after scaling; {how}; {fix}")
 
 
 def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
@@ -460,7 +471,7 @@ def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
     (memory_budget or MemoryBudget.resolve()).require(
         len(data.points) * BYTES_PER_IMPORTED_POINT, f"{_name(data.path)}: importing {len(data.points)} points")
     points = data.points.astype(np.float64) * scale
-    _finite_in_usd(points, data.path, "points", "coordinate", "--units-per-file-unit")
+    _finite_in_usd(points, data.path, "points", "coordinate", "change --units-per-file-unit")
     starts = np.concatenate([[0], np.cumsum(data.counts)[:-1]]).astype(np.int64)
     groups = [("Curves", ~data.closed, "nonperiodic"), ("ClosedCurves", data.closed, "periodic")]
     present = [(n, m, w) for n, m, w in groups if m.any()]
@@ -489,15 +500,18 @@ def write_curves(data: CurveData, dst_usd: str | os.PathLike[str], *,
             authoring.apply_fiber(prim, DEFAULT_FIBER_PRESET if preset is UNSET else preset,
                                   **_dye_args(dye, depth_of_shade))
         if isinstance(width, float):
-            widths, interp = np.array([width]), UsdGeom.Tokens.constant
+            widths, interp, fix = np.array([width]), UsdGeom.Tokens.constant, "change --width"
         elif width is None and data.widths is not None:
             widths, interp = data.widths[idx] * scale, UsdGeom.Tokens.vertex
+            fix = "change --units-per-file-unit or give --width"
         elif width is None and data.default_width is not None:
             widths, interp = np.array([data.default_width * scale]), UsdGeom.Tokens.constant
+            fix = "change --units-per-file-unit or give --width"
         else:
             widths, interp = np.array([_nominal_width(prim, yarn is not None, mpu)]), \
                 UsdGeom.Tokens.constant
-        _finite_in_usd(widths, data.path, "widths", "width", "--units-per-file-unit or --width")
+            fix = "change --meters-per-unit (the fiber's diameter in scene units) or give --width"
+        _finite_in_usd(widths, data.path, "widths", "width", fix)
         wv = Vt.FloatArray.FromNumpy(np.ascontiguousarray(widths, dtype=np.float32))
         curves.CreateWidthsAttr(wv)
         curves.SetWidthsInterpolation(interp)

@@ -140,6 +140,23 @@ def test_compress_continues_past_a_bad_file(table_file, tmp_path, capsys):
     assert BcsdfTable.load(outdir / "silk.npz").compressed and not (outdir / "junk.npz").exists()
 
 
+def test_compress_refuses_two_tables_written_to_one_file(table_file, tmp_path, capsys):
+    """Tables of one name from different folders into one -o directory (the second overwrote the
+    first), or a table given twice: refused in one line before anything is written."""
+    (tmp_path / "b").mkdir()
+    twin = tmp_path / "b" / "silk.npz"
+    shutil.copy(table_file, twin)
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    assert run(["table", "compress", str(table_file), str(twin), "-o", str(outdir)]) == 2
+    _one_line_error(capsys, f"{table_file} and {twin} would both be written to {outdir / 'silk.npz'}")
+    assert not list(outdir.iterdir())
+    before = table_file.read_bytes()
+    assert run(["table", "compress", str(table_file), str(tmp_path / "b" / ".." / "silk.npz"), "--in-place"]) == 2
+    _one_line_error(capsys, "given twice")
+    assert table_file.read_bytes() == before
+
+
 @pytest.mark.parametrize("args, needle", [
     ([], "-o OUT or --in-place"),
     (["-o", "nowhere/"], "expected a directory for 2 tables"),

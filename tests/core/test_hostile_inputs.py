@@ -277,11 +277,12 @@ CURVE_CASES = [
          r"curve 0 has 1 control point \(count 1\); an open polyline curve needs at least 2"),
     Case("bcc-catmull-rom-3-points", _import("c.bcc", _bcc(kind=b"C0")), 2,
          r"an open uniform Catmull-Rom curve needs at least 4"),
-    Case("bcc-overflowing-scale", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (3e30, 0, 0), (2, 1, 0)])]),
+    Case("bcc-overflowing-scale", _import("c.bcc", _bcc(curves=[(3, [(0, 0, 0), (3e10, 0, 0), (2, 1, 0)])]),
                                           "--units-per-file-unit", "1e10"), 2,
-         r"c.bcc: points: coordinate 1 becomes 3e\+40 after scaling, beyond the float32 range .*--units-per-file-unit"),
-    Case("bcc-overflowing-width", _import("c.bcc", _bcc(), "--width", "1e39"), 2,
-         r"widths: width 0 becomes 1e\+39 after scaling.*--width"),
+         r"c.bcc: points: coordinate 1 becomes 3e\+20 after scaling; expected magnitudes below 1e\+18 .*; change "
+         r"--units-per-file-unit"),
+    Case("bcc-overflowing-width", _import("c.bcc", _bcc(), "--width", "1e30"), 2,
+         r"widths: width 0 becomes 1e\+30 after scaling; expected magnitudes below 1e\+18.*; change --width"),
     Case("bcc-unknown-preset", _import("c.bcc", _bcc(), "--preset", "kevlar"), 2,
          r"/c/Curves: unknown fiber preset 'kevlar'; valid: polyester"),
     Case("bcc-unknown-yarn", _import("c.bcc", _bcc(), "--yarn", "CNe 9999"), 2,
@@ -304,6 +305,12 @@ CURVE_CASES = [
          r"non-finite coordinate"),
     Case("hair-thickness-overflow", _import("h.hair", _hair(thick=[1e30] * 3), "--units-per-file-unit", "1e9"), 2,
          r"widths: width 0 becomes 1e\+39 after scaling"),
+    # Finite values a renderer cannot use: beyond 1e18 (float32 squares overflow; above) or below
+    # float32's normal range (written as 0: the nominal width of a stage of absurd units drew nothing).
+    Case("bcc-scale-underflow", _import("c.bcc", _bcc(), "--units-per-file-unit", "1e-300"), 2,
+         r"points: coordinate 1 becomes 1e-300 after scaling; expected magnitudes of at least 1.18e-38"),
+    Case("bcc-meters-per-unit-huge", _import("c.bcc", _bcc(), "--meters-per-unit", "1e300"), 2,
+         r"widths: width 0 becomes 1e-305 after scaling; .* change --meters-per-unit"),
     Case("curves-directory", lambda tmp: (tmp.joinpath("d.bcc").mkdir(), ["import", str(tmp / "d.bcc"), "-o",
                                                                           str(tmp / "o.usda")])[1], 2,
          r"d.bcc: is a directory, not a curve file"),
@@ -404,6 +411,19 @@ CLI_CASES = [
     Case("cli-table-inspect-nothing", _args("table", "inspect"), 2, r"required: FILE"),
 ]
 
+#: A dry run refuses the farm options a bake would refuse (it used to list the tables, exit 0).
+DRY_RUN_FARM = {
+    "shard-out-of-range": (["--shard", "5/2"], r"--shard: shard 5/2: I must be between 1 and N=2"),
+    "shard-empty": (["--shard", ""], r"--shard: bad shard '': expected I/N"),
+    "scheduler-bad": (["--scheduler", "bogus::x"], r"bad --scheduler 'bogus::x': an IPv6 address needs brackets"),
+    "scheduler-empty": (["--scheduler", ""], r"bad --scheduler '': expected an address such as tcp://host:8786"),
+    "scheduler-local-zero": (["--scheduler", "local:0"], r"local:N needs 1 <= N <= 256"),
+    "shard-and-scheduler": (["--shard", "1/2", "--scheduler", "local:1"], r"exclude each other"),
+    "shard-plot": (["--shard", "1/2", "--plot"], r"--plot writes figures next to tables baked here; not with"),
+}
+CLI_CASES += [Case(f"cli-bake-dry-run-{name}", _args("bake", "--preset", "silk", "--dry-run", *words), 2, expect)
+              for name, (words, expect) in DRY_RUN_FARM.items()]
+
 ALL = STAGE_CASES + _corpus_cases() + TABLE_CASES + CURVE_CASES + CLI_CASES
 
 
@@ -417,3 +437,36 @@ def test_the_corpus_is_large_and_covers_every_category():
 @pytest.mark.parametrize("case", ALL, ids=[c.id for c in ALL])
 def test_hostile_input(case, tmp_path, capsys):
     run_case(case, tmp_path, capsys)
+
+
+#: Command lines argparse refuses: the error is the only line on stderr (no usage block above it).
+ARGPARSE_ERRORS = [
+    ["cloth", "stockinette", "-o", "{tmp}/c.usda", "--rows", "0"],
+    ["cloth", "stockinette", "-o", "{tmp}/c.usda", "--loops", "nan"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--warps", "1e9"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--spacing", "inf"],
+    ["cloth", "satin", "-o", "{tmp}/c.usda", "--floats", "-1"],
+    ["cloth", "plain", "-o", "{tmp}/c.usda", "--depth-of-shade", "nan"],
+    ["cloth", "tartan", "-o", "{tmp}/c.usda"],
+    ["cloth", "plain"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--width", "0"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--meters-per-unit", "nan"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--depth-of-shade", "-1"],
+    ["import", "-o", "{tmp}/o.usda"],
+    ["import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--bogus"],
+    ["check", "--time", "soon", "{tmp}/s.usda"],
+    ["presets", "--bogus"],
+    ["render", "{tmp}/s.usda", "--device", "tpu"],
+    ["nosuch"],
+    [],
+]
+
+
+@pytest.mark.parametrize("words", ARGPARSE_ERRORS, ids=[" ".join(w) or "nothing" for w in ARGPARSE_ERRORS])
+def test_command_line_errors_are_one_line(words, tmp_path, capsys):
+    argv = _args(*words)(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "error:" in err and "usage:" not in err, err

@@ -114,3 +114,28 @@ def test_cli_grid_is_the_default_and_slice_on_request(table_file, tmp_path, caps
     assert main(["table", "plot", str(table_file), "--figure", "fit", "--theta-i", "0", "-o", str(fit)]) == 0
     spec, px = _png(fit)
     assert spec.width > 600 and px[..., :3].std() > 0.05
+
+
+def test_cli_output_directory_and_names_without_a_format(table_file, tmp_path, capsys):
+    """-o an existing directory writes FILE's name with the figure in it (it wrote DIR.png beside
+    it); a name without an extension is refused before any work (matplotlib added .png)."""
+    out = tmp_path / "figures"
+    out.mkdir()
+    assert main(["table", "plot", str(table_file), "-o", str(out)]) == 0
+    assert main(["table", "plot", str(table_file), "--figure", "slice", "--theta-i", "0", "-o", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["circle-grid.png", "circle-slice.png"]
+    assert not (tmp_path / "figures.png").exists()
+    assert f"wrote {out / 'circle-grid.png'} (grid)" in capsys.readouterr().out
+    assert main(["table", "plot", str(table_file), "-o", str(tmp_path / "figure")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "no extension to choose the image format by" in err
+    assert not list(tmp_path.glob("figure.*"))
+
+
+@pytest.mark.parametrize("decades", ["400", "0", "-1", "nan"])
+def test_cli_decades_out_of_range_is_a_usage_error(table_file, tmp_path, capsys, decades):
+    with pytest.raises(SystemExit) as e:
+        main(["table", "plot", str(table_file), "--decades", decades, "-o", str(tmp_path / "g.png")])
+    assert e.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--decades" in last and "Traceback" not in last and not (tmp_path / "g.png").exists()

@@ -185,13 +185,17 @@ def broken(c: Corpus) -> None:
         "bad_basis": dict(basis="hermite", counts=[4], widths=w),
         "bad_wrap": dict(wrap="closed", counts=[4], widths=w),
         "bezier_off_step": dict(basis="bezier", counts=[5], widths=w),
+        # Finite but beyond float32's squares: the curve would silently disappear.
+        "huge_point": dict(counts=[4], points=[(0, 0, 0), (1, 1e30, 0), (2, 0, 0), (3, 1, 0)], widths=w),
+        "huge_width": dict(counts=[4], widths=[1e30]),
     }
     codes = {
         "too_few_points": "CurveTooFewPoints", "counts_mismatch": "CurvesCountsMismatch",
         "nan_point": "PointsNotFinite", "negative_width": "WidthNegative",
         "widths_miscounted": "WidthsCountMismatch", "nan_width": "WidthsNotFinite",
         "bad_basis": "CurveTypeInvalid", "bad_wrap": "CurveTypeInvalid",
-        "bezier_off_step": "CurveBezierVertexCount",
+        "bezier_off_step": "CurveBezierVertexCount", "huge_point": "PointsTooLarge",
+        "huge_width": "WidthsTooLarge",
     }
     for name, kw in cases.items():
         kw = dict(kw)

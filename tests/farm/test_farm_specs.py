@@ -74,6 +74,29 @@ def test_bad_shards_are_one_line_errors(text, words):
     assert words in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.parametrize("spec, expected", [
+    ("local:3", (3, "")), ("host:8786", (0, "tcp://host:8786")), ("tcp://10.0.0.1", (0, "tcp://10.0.0.1")),
+    ("tcp://[::1]:8786", (0, "tcp://[::1]:8786")), ("tls://h:1", (0, "tls://h:1")), ("inproc://x", (0, "inproc://x")),
+])
+def test_scheduler_addresses(spec, expected):
+    from usdfiber.farm.cluster import parse_scheduler
+
+    assert parse_scheduler(spec) == expected
+
+
+@pytest.mark.parametrize("spec, words", [
+    ("", "expected an address"), ("a b", "expected an address"), ("bogus::x", "IPv6 address needs brackets"),
+    ("tcp://h:abc", "a port in 1..65535"), ("tcp://h:0", "a port in 1..65535"), ("tcp://:8786", "a host"),
+    ("foo://bar", "unknown protocol 'foo'"), ("local:0", "1 <= N <= 256"), ("local:x", "1 <= N <= 256"),
+])
+def test_bad_scheduler_addresses_are_one_line_errors_without_connecting(spec, words):
+    from usdfiber.farm.cluster import FarmError, parse_scheduler
+
+    with pytest.raises(FarmError) as e:
+        parse_scheduler(spec)
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
 def test_probes_outlive_their_bake_and_stale_ones_are_removed(tmp_path):
     """A task shared by two clients may be retried after one client finished: its probe must
     still be there. Probes older than PROBE_LIFETIME_S are removed by the next client."""

@@ -271,6 +271,24 @@ def test_transform_convention_and_nonuniform_scale():
     assert len(g3.warnings) == 1 and "/X/c" in g3.warnings[0] and "non-uniform scale" in g3.warnings[0]
 
 
+def test_values_too_large_for_float32_in_world_space():
+    """A transform that takes finite points or widths beyond the float32 bound is refused (the
+    curve would vanish from the render), naming the prim; the authored values are fine."""
+    stage = Usd.Stage.CreateInMemory()
+    bc = define_curves(stage, "/X/c", "cubic", "bspline", "nonperiodic", [4], curve_points([4], False),
+                       [0.5], "constant")
+    xf = UsdGeom.Xform.Define(stage, "/X")
+    xf.AddScaleOp().Set(Gf.Vec3f(1e19, 1e19, 1e19))
+    with pytest.raises(C.CurveError, match=r"/X/c: in world space .* of magnitude 1e\+18 or more .*float32"):
+        C.curves_from_prim(bc.GetPrim())
+    # Zero widths stay valid at any scale; a zero scale too (both draw nothing, by design).
+    bc.GetWidthsAttr().Set(Vt.FloatArray([0.0]))
+    bc.GetPointsAttr().Set(Vt.Vec3fArray([(0, 0, 0), (0.01, 0, 0), (0.02, 0, 0), (0.03, 0, 0)]))
+    assert C.curves_from_prim(bc.GetPrim()).segment_count == 1
+    xf.GetPrim().GetAttribute("xformOp:scale").Set(Gf.Vec3f(0, 0, 0))
+    assert C.curves_from_prim(bc.GetPrim()).segment_count == 1
+
+
 def test_widths_sources_and_warnings():
     stage = Usd.Stage.CreateInMemory()
     pts = curve_points([4], False)
@@ -302,7 +320,7 @@ def test_widths_sources_and_warnings():
 @pytest.mark.parametrize("case", [
     "sum", "bspline3", "bezier5", "bezier_periodic4", "pinned1", "linear1", "nan", "negcount",
     "widths_vertex", "widths_varying", "widths_uniform", "widths_constant", "widths_nan",
-    "widths_negative", "type_token", "interp_token",
+    "widths_negative", "type_token", "interp_token", "huge", "widths_huge",
 ])
 def test_errors_name_prim_and_attribute(case):
     stage = Usd.Stage.CreateInMemory()
@@ -322,15 +340,16 @@ def test_errors_name_prim_and_attribute(case):
         args["counts"] = [-1, 10]
     pts = curve_points([max(sum(args["counts"]), 0) + (case == "sum")], False)
     widths = [0.1] * len(pts)
-    if case == "nan":
-        pts[2] = (np.nan, 0, 0)
+    if case in ("nan", "huge"):
+        pts[2] = (np.nan if case == "nan" else 1e30, 0, 0)
         attr = "points"
     if case.startswith("widths"):
         attr = "widths"
         kind = case.split("_")[1]
-        args["interp"] = {"nan": "vertex", "negative": "vertex"}.get(kind, kind)
+        args["interp"] = {"nan": "vertex", "negative": "vertex", "huge": "vertex"}.get(kind, kind)
         widths = {"vertex": [0.1] * 8, "varying": [0.1] * 4, "uniform": [0.1] * 3,
-                  "constant": [0.1, 0.2], "nan": [0.1] * 8 + [np.nan], "negative": [0.1] * 8 + [-1]}[kind]
+                  "constant": [0.1, 0.2], "nan": [0.1] * 8 + [np.nan], "negative": [0.1] * 8 + [-1],
+                  "huge": [0.1] * 8 + [1e30]}[kind]
     bc = define_curves(stage, "/Root/bad", args["ctype"], args["basis"], args["wrap"], args["counts"],
                        pts, widths, args["interp"])
     if case == "type_token":

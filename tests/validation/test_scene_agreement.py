@@ -120,6 +120,8 @@ C3, TOK = Sdf.ValueTypeNames.Color3f, Sdf.ValueTypeNames.Token
 CASES = [
     ("camera-focal-zero", _attr("/World/Cam", "focalLength", F, 0.0), "CameraInvalid", "/World/Cam", "focalLength"),
     ("camera-focal-nan", _attr("/World/Cam", "focalLength", F, NAN), "CameraInvalid", "/World/Cam", "focalLength"),
+    ("camera-aperture-180-degrees", _attr("/World/Cam", "horizontalAperture", F, 1e30), "CameraInvalid", "/World/Cam",
+     "horizontalAperture"),
     ("camera-vaperture-zero", _attr("/World/Cam", "verticalAperture", F, 0.0), "CameraInvalid", "/World/Cam",
      "verticalAperture"),
     ("camera-clip-reversed", _attr("/World/Cam", "clippingRange", F2, Gf.Vec2f(10, 1)), "CameraInvalid",
@@ -137,10 +139,17 @@ CASES = [
      "inputs:exposure"),
     ("light-color-nan", _attr("/World/Key", "inputs:color", C3, Gf.Vec3f(NAN, 1, 1)), "LightInvalid",
      "/World/Key", "inputs:color"),
+    ("light-rect-huge", _attr("/World/Fill", "inputs:width", F, 1e30), "LightInvalid", "/World/Fill", "inputs:width"),
+    ("light-rect-inf", _attr("/World/Fill", "inputs:height", F, INF), "LightInvalid", "/World/Fill", "inputs:height"),
     ("light-rect-zero", _attr("/World/Fill", "inputs:width", F, 0.0), "LightInvalid", "/World/Fill",
      "inputs:width"),
     ("mesh-index-out-of-range", _attr("/World/Card", "faceVertexIndices", Sdf.ValueTypeNames.IntArray,
                                       Vt.IntArray([0, 1, 2, 9])), "MeshInvalid", "/World/Card", "faceVertexIndices"),
+    ("mesh-point-huge", _attr("/World/Card", "points", Sdf.ValueTypeNames.Point3fArray,
+                              Vt.Vec3fArray([Gf.Vec3f(-2, -1, -1), Gf.Vec3f(2, -1, -1), Gf.Vec3f(2, 1e30, -1),
+                                             Gf.Vec3f(-2, 1, -1)])), "MeshInvalid", "/World/Card", "points"),
+    ("camera-translate-huge", _attr("/World/Cam", "xformOp:translate", Sdf.ValueTypeNames.Double3,
+                                    Gf.Vec3d(0, 0, 1e30)), "CameraInvalid", "/World/Cam", "xformOpOrder"),
     ("mesh-point-nan", _attr("/World/Card", "points", Sdf.ValueTypeNames.Point3fArray,
                              Vt.Vec3fArray([Gf.Vec3f(NAN, 0, 0)] * 4)), "MeshInvalid", "/World/Card", "points"),
     ("material-diffuse-nan", _shader_input("diffuseColor", C3, Gf.Vec3f(NAN, 0.5, 0.5)), "MeshInvalid",
@@ -160,6 +169,9 @@ CASES = [
                                            Vt.IntArray([0, 3])), "PlacementInvalid", "/World/Scatter", None),
     ("instancer-position-nan", _attr("/World/Scatter", "positions", Sdf.ValueTypeNames.Point3fArray,
                                      Vt.Vec3fArray([Gf.Vec3f(0, 0, 0), Gf.Vec3f(NAN, 0, 0)])),
+     "PlacementInvalid", "/World/Scatter", None),
+    ("instancer-position-huge", _attr("/World/Scatter", "positions", Sdf.ValueTypeNames.Point3fArray,
+                                      Vt.Vec3fArray([Gf.Vec3f(0, 0, 0), Gf.Vec3f(0, -1e30, 0)])),
      "PlacementInvalid", "/World/Scatter", None),
     ("curves-widths-scalar", _attr("/World/Curves", "widths", F, 0.05), "AttributeTypeMismatch", "/World/Curves",
      "widths"),
@@ -201,6 +213,54 @@ def test_check_reports_what_render_refuses(tmp_path, name, edit, code, prim, att
     refusal = _render_refuses(stage)
     assert refusal is not None and "\n" not in refusal and "Traceback" not in refusal
     assert prim.split("/")[-1] in refusal or code in ("AttributeTypeMismatch", "AttributeTokenNotAllowed")
+
+
+@pytest.mark.parametrize("fiber", [True, False], ids=["fiber", "plain"])
+def test_curves_an_instancer_scales_beyond_float32(tmp_path, fiber):
+    """The curves' own check sees the prototype, not the instance a PointInstancer scales by 1e20:
+    check reports what the render does (fiber curves refuse it, plain ones are skipped)."""
+    stage = _base(tmp_path / "scaled.usda")
+    proto = _line(stage, "/World/Scatter/Protos/Hair", 0.0, 0.01)
+    if fiber:
+        proto.GetPrim().ApplyAPI("FiberAPI")
+        proto.GetWidthsAttr().Set(Vt.FloatArray([0.0]))  # a width of 0 is fine at any scale
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Scatter"))
+    pi.GetPrototypesRel().AddTarget(proto.GetPath())
+    pi.CreateProtoIndicesAttr(Vt.IntArray([0, 1, 1]))
+    pi.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0.5, 0), Gf.Vec3f(0, 0.2, 0), Gf.Vec3f(0, 0.3, 0)]))
+    pi.CreateScalesAttr(Vt.Vec3fArray([Gf.Vec3f(1, 1, 1), Gf.Vec3f(1, 1, 1), Gf.Vec3f(1e20, 1e20, 1e20)]))
+    report = check_stage(stage)
+    found = [p for p in report.problems if p.prim == "/World/Scatter"]
+    assert [(p.code, p.severity.value) for p in found] == (
+        [("PlacementInvalid", "error")] if fiber else [("PlainCurvesSkipped", "warning")]), report.problems
+    assert "/World/Scatter[2]/World/Scatter/Protos/Hair: in world space" in found[0].message
+    assert "magnitude 1e+18 or more" in found[0].message
+    refusal = _render_refuses(stage)
+    if fiber:
+        assert refusal is not None and "/World/Scatter/Protos/Hair" in refusal and "1e+18" in refusal
+    else:
+        assert refusal is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tr = translate_stage(stage, _options())
+        assert any("Hair" in w and "skipped" in w and "1e+18" in w for w in tr.warnings), tr.warnings
+
+
+def test_a_light_the_render_leaves_out_is_a_check_warning(tmp_path):
+    """A negative intensity, a light type without a Mitsuba emitter: the render skips the light
+    with a warning (and may fall back to its default rig); check warns the same."""
+    stage = _base(tmp_path / "skipped.usda")
+    stage.GetPrimAtPath("/World/Key").GetAttribute("inputs:intensity").Set(-2.0)
+    UsdLux.CylinderLight.Define(stage, "/World/Tube")
+    found = {(p.code, p.prim, p.attribute, p.severity.value) for p in check_stage(stage).problems}
+    assert ("LightSkipped", "/World/Key", "inputs:intensity", "warning") in found, found
+    assert ("LightSkipped", "/World/Tube", None, "warning") in found, found
+    assert _render_refuses(stage) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tr = translate_stage(stage, _options())
+    assert any(w.startswith("/World/Key.inputs:intensity: negative intensity") for w in tr.warnings)
+    assert any(w.startswith("/World/Tube: ") and "skipped" in w for w in tr.warnings), tr.warnings
 
 
 def test_a_light_broken_at_one_time_sample(tmp_path):
@@ -253,3 +313,23 @@ def test_a_renderer_that_cannot_run_is_a_one_line_warning(tmp_path, monkeypatch)
     assert report.errors == []
     [w] = [p for p in report.warnings if p.code == "RendererCheckSkipped"]
     assert "needs libLLVM" in w.message and "\n" not in w.message
+
+
+def test_a_scene_mitsuba_refuses_is_a_one_line_refusal(tmp_path, monkeypatch):
+    """A value the translation's checks let through and Mitsuba refuses when it builds the scene
+    (as a field of view of 180 degrees did) is a one-line refusal, not a traceback."""
+    from usdfiber.backend import mitsuba
+
+    mi = mitsuba()
+    load = mi.load_dict
+
+    def refuse(entries, *args, **kwargs):
+        if "sensor" not in entries:  # shapes and emitters are loaded one by one before the scene
+            return load(entries, *args, **kwargs)
+        raise RuntimeError('[parser.cpp:1718] At dictionary node "sensor": failed\n  more detail')
+
+    monkeypatch.setattr(mi, "load_dict", refuse)
+    with warnings.catch_warnings(), pytest.raises(TranslateError) as e:
+        warnings.simplefilter("ignore")
+        translate_stage(_base(tmp_path / "s.usda"), _options())
+    assert str(e.value).startswith("Mitsuba could not build the scene: [parser.cpp:1718]") and "\n" not in str(e.value)

@@ -304,6 +304,56 @@ def test_non_finite_points_and_widths():
     assert "width 3 has" in only(probs, "WidthNegative").message  # 0 (index 4) is a taper
 
 
+def test_points_and_widths_too_large_for_float32():
+    """Finite values whose squares overflow float32 (1e30) make the curve vanish from the
+    render: errors naming the attribute and the bound; values just below it, and zero widths,
+    pass."""
+    from usdfiber.geometry.curves import MAX_COORDINATE
+
+    stage = new_stage()
+    pts = curve_points([4, 4])
+    pts[6, 1] = -1e30
+    prim = add_curves(stage, "/F", [4, 4], points=pts, widths=[10, 10, 0, 10, 10, 1e30, 10, 10],
+                      interpolation="vertex")
+    probs = check_curves_prim(prim)
+    assert codes(probs) == ["PointsTooLarge", "WidthsTooLarge"]
+    p = only(probs, "PointsTooLarge")
+    assert p.severity is Severity.ERROR and p.attribute == "points"
+    assert "point 6 has" in p.message and "below 1e+18" in p.message
+    w = only(probs, "WidthsTooLarge")
+    assert w.attribute == "widths" and "width 5 has" in w.message and "1e+30" in w.message
+    below = float(np.nextafter(np.float32(MAX_COORDINATE), np.float32(0)))
+    pts[6, 1] = -below
+    ok = add_curves(stage, "/G", [4, 4], points=pts, widths=[0, 10, 10, 10, 10, 10, 10, 0],
+                    interpolation="vertex")
+    assert check_curves_prim(ok) == []
+
+
+def test_points_and_widths_too_large_in_world_space():
+    """An ancestor's scale or translation that takes the curves beyond the bound."""
+    stage = new_stage()
+    xf = UsdGeom.Xform.Define(stage, "/Far")
+    op = xf.AddScaleOp()
+    op.Set(Gf.Vec3f(1e18, 1e18, 1e18))
+    prim = add_curves(stage, "/Far/F", [4])
+    probs = check_curves_prim(prim)
+    assert {"PointsTooLarge", "WidthsTooLarge"} <= set(codes(probs))
+    p = only(probs, "PointsTooLarge")
+    assert p.message.startswith("in world space") and "(e.g. (1e+19, " in p.message
+    assert only(probs, "WidthsTooLarge").message.startswith("in world space")
+    op.Set(Gf.Vec3f(1, 1, 1))
+    xf.AddTranslateOp().Set(Gf.Vec3d(0, 0, -1e30))
+    assert "PointsTooLarge" in codes(check_curves_prim(prim))
+    assert "WidthsTooLarge" not in codes(check_curves_prim(prim))
+    # A finite matrix that takes finite points past float64 (Inf in world space) is beyond too.
+    far = UsdGeom.Xform.Define(stage, "/Farther")
+    far.AddTransformOp().Set(Gf.Matrix4d(Gf.Vec4d(1e300, 1e300, 1e300, 1)))
+    pts = curve_points([4])
+    pts[2, 0] = 1e10
+    p = only(check_curves_prim(add_curves(stage, "/Farther/F", [4], points=pts)), "PointsTooLarge")
+    assert p.message.startswith("in world space") and "3 points (1, 2, 3) have" in p.message
+
+
 def test_zero_length_curve():
     stage = new_stage()
     pts = curve_points([4, 4, 4])

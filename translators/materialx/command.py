@@ -33,7 +33,7 @@ __all__ = ["register", "run"]
 
 def register(sub: argparse._SubParsersAction) -> None:
     from usdfiber.commands.arg_types import finite_float
-    from usdfiber.commands.bake import one_line_errors
+    from usdfiber.cli import one_line_errors
 
     p = sub.add_parser("material", help="write fitted MaterialX / Storm materials for the fibers of a stage",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

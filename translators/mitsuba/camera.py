@@ -44,10 +44,11 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from usdfiber.geometry.curves import too_large_text
 from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.render_settings import as_timecode, to_mi_transform
 
-__all__ = ["CameraWarning", "CONFORM_POLICIES", "DefaultFraming", "camera_sensor", "conform_aperture", "default_camera",
+__all__ = ["CameraWarning", "CONFORM_POLICIES", "DefaultFraming", "MAX_APERTURE_RATIO", "camera_sensor", "conform_aperture", "default_camera",
            "validate_camera",
            "default_framing"]
 
@@ -125,6 +126,15 @@ def _sampler(spp: int, seed: int) -> dict:
     return {"type": "independent", "sample_count": int(spp), "seed": int(seed)}
 
 
+#: Largest aperture / focal length of a perspective camera (a field of view of 179.9999 degrees):
+#: a wider one rounds to 180 degrees, which Mitsuba refuses, once conformed to the image's aspect.
+MAX_APERTURE_RATIO = 1e6
+
+
+def _fov(aperture: float, focal: float) -> float:
+    return math.degrees(2.0 * math.atan(0.5 * aperture / focal))
+
+
 def validate_camera(prim: Usd.Prim, xform: np.ndarray, time: Usd.TimeCode | float | None) -> None:
     """Raise :class:`TranslationError` for a camera that cannot be rendered: not a camera;
     apertures, offsets, focal length or clipping range that are not finite or out of range; a
@@ -152,11 +162,22 @@ def validate_camera(prim: Usd.Prim, xform: np.ndarray, time: Usd.TimeCode | floa
     if gf.projection != gf.Orthographic and not 0 < float(gf.focalLength) < math.inf:
         raise TranslationError(where, "focalLength", f"must be > 0 and finite for a perspective camera, "
                                f"got {float(gf.focalLength)}")
+    if gf.projection != gf.Orthographic:
+        focal = float(gf.focalLength)
+        for name, value in (("horizontalAperture", h_ap), ("verticalAperture", v_ap)):
+            if value / focal > MAX_APERTURE_RATIO:
+                raise TranslationError(where, name, f"{value:g} over focalLength {focal:g} is a field of view of "
+                                       f"{_fov(value, focal):.6f} degrees; expected aperture / focalLength up to "
+                                       f"{MAX_APERTURE_RATIO:g} (a field of view under {_fov(MAX_APERTURE_RATIO, 1):.4f} "
+                                       f"degrees: Mitsuba needs one below 180)")
     m = np.asarray(xform, dtype=np.float64)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise TranslationError(where, "xformOpOrder", "the camera's world transform is not finite")
     if not abs(np.linalg.det(m[:3, :3])) > 0:
         raise TranslationError(where, "xformOpOrder", "the camera's world transform is singular (a scale of 0)")
+    huge = too_large_text(m[3:, :3], "the camera's world position")
+    if huge:
+        raise TranslationError(where, "xformOpOrder", huge)
 
 
 def camera_sensor(
@@ -225,7 +246,10 @@ def camera_sensor(
         local = np.diag([half_w, half_w, 1.0, 1.0]) @ _USD_FROM_MI @ offset @ rigid
         return {"type": "orthographic", "to_world": to_mi_transform(local), **common}
 
-    fov = math.degrees(2.0 * math.atan(0.5 * h_ap / focal))
+    fov = _fov(h_ap, focal)
+    if not fov < 180.0:  # an extreme image aspect conformed into the aperture
+        raise TranslationError(where, "horizontalAperture", f"conformed to the image's aspect ratio {aspect:g} "
+                               f"it is a field of view of 180 degrees; expected a narrower one")
     to_world = to_mi_transform(_USD_FROM_MI @ rigid)
     sensor: dict[str, Any] = {"fov": fov, "fov_axis": "x", "to_world": to_world, **common}
 

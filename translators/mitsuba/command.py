@@ -59,6 +59,8 @@ def _exposure(text: str) -> float:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``usdfiber render`` to the CLI's sub-commands (the ``usdfiber.commands`` entry point)."""
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser("render", help="render a stage (EXR + display PNG)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("stage", nargs="?", metavar="STAGE", help="USD file to render")
@@ -119,6 +121,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--json", action="store_true",
                    help="print a JSON summary (of the render, or with --frames of the sequence) instead of text")
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -66,6 +66,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
 
 from usdfiber.colour import blackbody_rgb
+from usdfiber.geometry.curves import MAX_COORDINATE, TOO_LARGE_EXPECTED
 
 from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.images import load_image
@@ -155,6 +156,13 @@ def _rotation(xform: np.ndarray) -> np.ndarray:
 _UNSUPPORTED = ("CylinderLight", "GeometryLight", "PortalLight", "PluginLight")
 
 
+def _size_in_range(where: str, attribute: str, size: float) -> None:
+    """Refuse a light whose size in world space is infinite or beyond float32's squares (its area
+    overflows: the light, and the image, would go black)."""
+    if not size < MAX_COORDINATE:
+        raise TranslationError(where, attribute, f"makes the light {size:g} across in world space; {TOO_LARGE_EXPECTED}")
+
+
 def light_emitter(prim: Usd.Prim, xform: np.ndarray,
                   time: Usd.TimeCode | float | None = None) -> tuple[dict | None, list[str]]:
     """Translate one UsdLux light (see the module docstring); ``xform`` is its local-to-world.
@@ -220,6 +228,8 @@ def light_emitter(prim: Usd.Prim, xform: np.ndarray,
         h = float(_get(rect.GetHeightAttr(), tc, 1.0))
         if not (w > 0 and h > 0):
             raise TranslationError(where, "inputs:width", f"width and height must be > 0, got {w} x {h}")
+        _size_in_range(where, "inputs:width", w * float(np.linalg.norm(m[0])))
+        _size_in_range(where, "inputs:height", h * float(np.linalg.norm(m[1])))
         tex = rect.GetTextureFileAttr()
         if tex and tex.Get(tc) and tex.Get(tc).path:
             warns.append(f"{where}.inputs:texture:file: RectLight textures are not supported; "
@@ -234,6 +244,7 @@ def light_emitter(prim: Usd.Prim, xform: np.ndarray,
         r = float(_get(UsdLux.DiskLight(prim).GetRadiusAttr(), tc, 0.5))
         if not r > 0:
             raise TranslationError(where, "inputs:radius", f"must be > 0, got {r}")
+        _size_in_range(where, "inputs:radius", 2 * r * float(max(np.linalg.norm(m[0]), np.linalg.norm(m[1]))))
         area = math.pi * r * r * float(np.linalg.norm(np.cross(m[0], m[1])))
         local = np.diag([r, r, 1.0, 1.0]) @ _FLIP_Z
         L = radiance / area if normalize else radiance
@@ -258,6 +269,7 @@ def light_emitter(prim: Usd.Prim, xform: np.ndarray,
                     "intensity": _rgb(L * math.pi * radius * radius)}, warns
         if not radius > 0:
             raise TranslationError(where, "inputs:radius", f"must be > 0 (or set treatAsPoint), got {r}")
+        _size_in_range(where, "inputs:radius", 2 * radius)
         L = radiance / area if normalize else radiance
         return {"type": "sphere", "center": centre, "radius": radius, "bsdf": black,
                 "emitter": {"type": "area", "radiance": _rgb(L)}}, warns

@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdShade
 
+from usdfiber.geometry.curves import too_large_text
 from usdfiber.translators.mitsuba.errors import TranslationError
 from usdfiber.translators.mitsuba.images import load_image
 from usdfiber.translators.mitsuba.render_settings import as_timecode
@@ -436,6 +437,9 @@ def _topology(prim: Usd.Prim, xform: np.ndarray, tc: Usd.TimeCode, warns: list[s
     if left != (det < 0):
         tris = tris[:, [0, 2, 1]]
     world = points @ lin + m[3, :3]
+    huge = too_large_text(world, "point")
+    if huge:
+        raise TranslationError(where, "points", f"in world space (after the local-to-world transform) {huge}")
     return _Topology(world, indices, face_of_corner, tris, face_of_tri, n_faces,
                      np.linalg.inv(lin).T)
 

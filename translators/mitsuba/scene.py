@@ -374,7 +374,12 @@ def translate_stage(stage: Usd.Stage, options: SceneOptions | None = None,
         entries["integrator"]["type"] = "volpath"
     if opt.aovs:
         entries["integrator"] = aov_integrator(entries["integrator"], opt.aovs)
-    scene = prof.call("scene", mi.load_dict, entries)
+    try:
+        scene = prof.call("scene", mi.load_dict, entries)
+    except RuntimeError as exc:
+        # A value the checks above let through and Mitsuba refuses: one line, not a traceback.
+        why = " ".join(str(exc).split())
+        raise TranslateError(f"Mitsuba could not build the scene: {why[:500]}") from None
     times["translate"] = _time.perf_counter() - t0 - times["tables"]
     return Translation(scene=scene, resolution=(w, h), spp=int(spp), camera=cam_name, fibers=fibers,
                        counts=counts, warnings=warnings, times=times, profile=prof,

@@ -18,6 +18,8 @@ from typing import Iterator, Sequence
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
+from usdfiber.geometry.curves import too_large_text
+
 __all__ = ["Placement", "walk"]
 
 
@@ -157,6 +159,11 @@ def _checked(pl: Placement) -> Placement:
     if not np.all(np.isfinite(pl.xform)):
         raise ValueError(f"{pl.path}: its world transform is not finite (NaN or Inf in the xformOps of the "
                          "prim or an ancestor, or in a PointInstancer's positions, orientations or scales)")
+    # A world position beyond the float32 bound (xformOps, or an instancer's positions) puts
+    # all of the prim's geometry there: it would disappear from the image.
+    huge = too_large_text(pl.xform[3:, :3], "its world position")
+    if huge:
+        raise ValueError(f"{pl.path}: {huge}")
     return pl
 
 

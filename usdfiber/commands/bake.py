@@ -41,16 +41,9 @@ from typing import Any
 from usdfiber.commands.arg_types import add_memory_budget_option, positive_float, positive_int, seed
 
 
-def one_line_errors(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Make ``parser`` report command-line errors as one line (no usage block), exit 2."""
-    def error(message: str):
-        parser.exit(2, f"{parser.prog}: error: {message}\n")
-
-    parser.error = error  # type: ignore[method-assign]
-    return parser
-
-
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "bake",
         help="bake the BCSDF tables that stages, presets or parameter files need",
@@ -355,6 +348,9 @@ def run(args: argparse.Namespace) -> int:
     from usdfiber.bake.settings import BakeError
     from usdfiber.memory_budget import MemoryBudget
 
+    from usdfiber.farm.command import check_farm_options
+
+    check_farm_options(args)   # --dry-run too: it refuses what the bake would
     settings = _settings(args)
     budget = MemoryBudget.resolve(args.memory_budget)
     cache = TableCache(args.cache_dir)
@@ -409,12 +405,6 @@ def run(args: argparse.Namespace) -> int:
     if wants_farm(args):
         # No estimate here: the probe measures this machine, not the cluster's workers (and a
         # shard does only part of the work); the farm reports its own progress.
-        if args.plot:
-            raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
-                             "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
-        if args.compress is not None:
-            raise UsageError("--compress compresses tables baked here; not with --scheduler or --shard "
-                             "(compress them afterwards with `usdfiber table compress --cache`)")
         return run_bake(args, reqs, settings, cache)
     # What the bake will cost, before it starts (the tables no cached table serves).
     try:

@@ -43,6 +43,8 @@ def _time(text: str) -> float:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "check",
         help="validate fiber stages (values, topology, tables, composition)",
@@ -60,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also check every variant that is not selected, one variant set at a "
                         "time (costs one validation of the prim's subtree per variant)")
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def run(args: argparse.Namespace) -> int:

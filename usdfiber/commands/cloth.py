@@ -29,6 +29,8 @@ WEAVES = ("plain", "satin")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "cloth",
         help="generate knitted or woven yarn centre lines (stockinette, garter, plain, satin)",
@@ -69,6 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "diameters (default 0.8; 0 disables the check)")
     add_memory_budget_option(p)
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def write_format(suffix: str) -> str:

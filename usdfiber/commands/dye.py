@@ -36,7 +36,7 @@ from usdfiber.commands.arg_types import finite_float, positive_int
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``usdfiber dye`` (the ``usdfiber.commands`` entry point)."""
-    from usdfiber.commands.bake import one_line_errors
+    from usdfiber.cli import one_line_errors
 
     p = sub.add_parser("dye", help="find the dye that gives a fiber a colour", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)

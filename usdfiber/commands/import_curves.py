@@ -31,6 +31,8 @@ def _width(text: str) -> float | str:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "import",
         help="import a BCC or HAIR curve file as fiber or yarn curves",
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="name of the default prim (default: the file's name)")
     add_memory_budget_option(p)
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def run(args: argparse.Namespace) -> int:

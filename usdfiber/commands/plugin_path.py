@@ -10,6 +10,8 @@ import os
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "plugin-path",
         help="print the plugin directories to put on PXR_PLUGINPATH_NAME",
@@ -17,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,6 +15,8 @@ from usdfiber.spec.attributes import Fiber
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from usdfiber.cli import one_line_errors
+
     p = sub.add_parser(
         "presets",
         help="list the fiber, dye and yarn presets (published and authored values)",
@@ -24,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("name", nargs="?", help="show only this preset (fiber, dye, dye colour or yarn)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run)
+    one_line_errors(p)
 
 
 def _rng(r: tuple[float, float] | None) -> Any:

@@ -5,7 +5,8 @@ resolution and symmetries, photons, error estimate, absorption levels, storage a
 albedo summary. ``--json`` prints the header and the summary as JSON.
 
 ``plot`` writes a labelled matplotlib figure (:mod:`usdfiber.table_plot`; PNG, PDF or SVG
-by extension), chosen by ``--figure``:
+by extension; ``-o`` an existing directory: ``<FILE's name>-<figure>.png`` in it), chosen by
+``--figure``:
 
 * ``grid`` (the default): the paper's Figure 3 layout, rows: each ``--theta-i`` (default
   -60 -30 0), columns: each ``--psi`` (default 0 60 120), the scattered intensity
@@ -25,7 +26,8 @@ by extension), chosen by ``--figure``:
 ``compress`` rewrites tables in the compact, recolourable layout of
 :mod:`usdfiber.bake.compression` (a low-rank absorption basis stored with blosc2's ZFP codec;
 p within ``--bound``, default 0.01, relative L2 per direction at every checked absorption),
-atomically: ``-o OUT`` (a file, or a directory for several tables) or ``--in-place``;
+atomically: ``-o OUT`` (a file, or a directory for several tables: tables of the same name
+are refused there, before anything is written) or ``--in-place``;
 ``--cache`` compresses every uncompressed table of the table cache (``--cache-dir``, else
 ``$USDFIBER_CACHE_DIR``, else ``~/.cache/usdfiber``) in place, under each key's lock: a render
 reads a compressed table exactly as the uncompressed one (:mod:`usdfiber.bake.cache`). One line
@@ -65,6 +67,18 @@ def _nonneg(text: str) -> float:
     v = finite_float(text)
     if v < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+#: ``table plot --decades``: the log10 range shown. Beyond 30 decades the lower end falls under
+#: anything a table of float photon counts holds (and 10^-decades underflows past ~300).
+MAX_DECADES = 30.0
+
+
+def _decades(text: str) -> float:
+    v = finite_float(text)
+    if not 0 < v <= MAX_DECADES:
+        raise argparse.ArgumentTypeError(f"must be > 0 and at most {MAX_DECADES:g} decades, got {text}")
     return v
 
 
@@ -118,10 +132,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="fiber diameter in um (default: the table's fiber)")
     pp.add_argument("--mu-a", type=_nonneg, nargs=3, default=None, metavar=("R", "G", "B"),
                     help="absorption coefficient per channel, 1/um (instead of --dye)")
-    pp.add_argument("--decades", type=_positive, default=4.0, help="log10 range shown (default 4)")
+    pp.add_argument("--decades", type=_decades, default=4.0,
+                    help=f"log10 range shown, up to {MAX_DECADES:g} (default 4)")
     pp.add_argument("--scale", type=int, default=4, metavar="PX", help="pixels per bin (default 4)")
     pp.add_argument("--smooth", action="store_true", help="bilinear between bin centres instead of bins")
-    pp.add_argument("-o", "--output", required=True, metavar="OUT.png", help="image to write")
+    pp.add_argument("-o", "--output", required=True, metavar="OUT.png",
+                    help="image to write, its format by extension (figures: .png, .pdf, .svg; slice: any "
+                         "OpenImageIO format); an existing directory: FILE's name with -FIGURE.png in it")
     pp.set_defaults(func=run_plot)
     from usdfiber.bake.compression import DEFAULT_BOUND
 
@@ -139,7 +156,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pc.add_argument("--bound", type=_bound, default=DEFAULT_BOUND, metavar="E",
                     help=f"largest relative L2 error of p per direction (default {DEFAULT_BOUND:g})")
     pc.set_defaults(func=run_compress)
-    from usdfiber.commands.bake import one_line_errors
+    from usdfiber.cli import one_line_errors
 
     for parser in (p, pi, pp, pc):
         one_line_errors(parser)
@@ -270,19 +287,39 @@ def run_compress(args: argparse.Namespace) -> int:
     if args.output is not None and len(args.files) > 1 and not os.path.isdir(args.output):
         raise UsageError(f"{args.output}: expected a directory for {len(args.files)} tables (-o OUT)")
     failed = 0
-    for src in args.files:
-        if args.in_place:
-            dst = src
-        elif os.path.isdir(args.output):
-            dst = os.path.join(args.output, os.path.basename(src))
-        else:
-            dst = args.output
+    for src, dst in _compress_targets(args.files, args.output, args.in_place):
         try:
             print(_compress_file(src, dst, args.bound), flush=True)
         except UsageError as exc:
             print(f"usdfiber: error: {exc}", file=sys.stderr)
             failed += 1
     return 2 if failed else 0
+
+
+def _compress_targets(files: list[str], output: str | None, in_place: bool) -> list[tuple[str, str]]:
+    """(source, destination) of each table; a UsageError, before anything is written, when two
+    sources would be written to one file (tables of the same name from different folders into
+    one -o directory, or a table given twice)."""
+    from usdfiber.cli import UsageError
+
+    pairs, seen = [], {}
+    for src in files:
+        if in_place:
+            dst = src
+        elif os.path.isdir(output):
+            dst = os.path.join(output, os.path.basename(src))
+        else:
+            dst = output
+        key = os.path.realpath(dst)
+        if key in seen:
+            first = seen[key]
+            if os.path.realpath(first) == os.path.realpath(src):
+                raise UsageError(f"{src}: given twice; expected each table once")
+            raise UsageError(f"{first} and {src} would both be written to {dst}; expected tables of different "
+                             f"names, or compress them into different directories (or --in-place)")
+        seen[key] = src
+        pairs.append((src, dst))
+    return pairs
 
 
 def _fmt_inputs(inputs: dict[str, Any]) -> str:
@@ -411,9 +448,26 @@ def false_colour(x: np.ndarray) -> np.ndarray:
     return (1 - t) * _RAMP[i] + t * _RAMP[i + 1]
 
 
+def _plot_output(args: argparse.Namespace) -> str:
+    """Where ``table plot`` writes: ``-o``, or ``<FILE's name>-<figure>.png`` inside ``-o`` when it is
+    a directory; a name without an extension (no format to write) is a usage error."""
+    from usdfiber.cli import UsageError
+
+    out = args.output
+    if os.path.isdir(out):
+        stem = os.path.basename(args.file.rstrip(os.sep))
+        stem = stem[:-4] if stem.lower().endswith(".npz") else stem
+        return os.path.join(out, f"{stem}-{args.figure}.png")
+    if not os.path.splitext(os.path.basename(out))[1]:
+        raise UsageError(f"-o {out}: no extension to choose the image format by; expected e.g. {out}.png, "
+                         f"or an existing directory")
+    return out
+
+
 def run_plot(args: argparse.Namespace) -> int:
     from usdfiber.cli import UsageError
 
+    args.output = _plot_output(args)
     table = _load(args.file)
     fiber = table.header.get("fiber") or {}
     if args.scale < 1 or args.scale > 64:

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FarmError", "LocalFarm", "PROBE_LIFETIME_S", "Probe", "TASK_LOCK", "check_workers", "connect", "verify_probe",
-           "write_probe"]
+__all__ = ["FarmError", "LocalFarm", "PROBE_LIFETIME_S", "Probe", "TASK_LOCK", "check_workers", "connect",
+           "parse_scheduler", "verify_probe", "write_probe"]
 
 #: Serialises usdfiber tasks within one worker process (see the module docstring).
 TASK_LOCK = threading.Lock()
@@ -161,6 +161,43 @@ class LocalFarm:
         self.client = self.cluster = None
 
 
+def parse_scheduler(spec: str) -> tuple[int, str]:
+    """``(N, "")`` for ``local:N`` (``local``: one worker per core), else ``(0, address)`` with
+    the address's protocol made explicit (``host:port`` is ``tcp://host:port``); FarmError, one
+    line, for a spec that names no scheduler (checked without connecting, so that
+    ``bake --dry-run`` refuses what a bake would)."""
+    spec = str(spec).strip()
+    if spec.startswith("local:") or spec == "local":
+        n_text = spec.partition(":")[2] or str(os.cpu_count() or 1)
+        try:
+            n = int(n_text)
+        except ValueError:
+            n = 0
+        if not 1 <= n <= 256:
+            raise FarmError(f"bad --scheduler {spec!r}: local:N needs 1 <= N <= 256 worker processes")
+        return n, ""
+    expected = "expected an address such as tcp://host:8786, or local:N"
+    if not spec or any(c.isspace() for c in spec):
+        raise FarmError(f"bad --scheduler {spec!r}: {expected}")
+    address = spec if "://" in spec else f"tcp://{spec}"
+    scheme, _, where = address.partition("://")
+    if scheme in ("tcp", "tls", "ws", "wss"):
+        host, port = where, "8786"
+        if where.startswith("["):       # [ipv6]:port
+            host, _, rest = where[1:].partition("]")
+            port = rest[1:] if rest.startswith(":") else ("" if rest else port)
+        elif ":" in where:
+            host, _, port = where.rpartition(":")
+            if ":" in host:
+                raise FarmError(f"bad --scheduler {spec!r}: an IPv6 address needs brackets, as in "
+                                f"tcp://[::1]:8786; {expected}")
+        if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise FarmError(f"bad --scheduler {spec!r}: {expected} (a host and a port in 1..65535)")
+    elif scheme not in ("inproc", "ucx"):
+        raise FarmError(f"bad --scheduler {spec!r}: unknown protocol {scheme!r}; {expected}")
+    return 0, address
+
+
 def connect(spec: str, *, timeout: float | None = None, farm: LocalFarm | None = None) -> Any:
     """A ``distributed.Client`` for ``spec`` (an address, or ``local:N``); FarmError when unreachable.
 
@@ -175,15 +212,8 @@ def connect(spec: str, *, timeout: float | None = None, farm: LocalFarm | None =
         from usdfiber.farm.worker_plugin import DrjitThreads
     except ImportError as exc:  # pragma: no cover - a dependency
         raise FarmError(f"--scheduler needs the 'distributed' package ({exc}); pip install distributed") from None
-    spec = str(spec).strip()
-    if spec.startswith("local:") or spec == "local":
-        n_text = spec.partition(":")[2] or str(os.cpu_count() or 1)
-        try:
-            n = int(n_text)
-        except ValueError:
-            n = 0
-        if not 1 <= n <= 256:
-            raise FarmError(f"bad --scheduler {spec!r}: local:N needs 1 <= N <= 256 worker processes")
+    n, address = parse_scheduler(spec)
+    if n:
         threads = max(1, (os.cpu_count() or 1) // n)
         try:
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -195,9 +225,6 @@ def connect(spec: str, *, timeout: float | None = None, farm: LocalFarm | None =
         if farm is not None:
             farm.cluster = cluster
         return client
-    if not spec or any(c.isspace() for c in spec):
-        raise FarmError(f"bad --scheduler {spec!r}: expected an address such as tcp://host:8786, or local:N")
-    address = spec if "://" in spec else f"tcp://{spec}"
     try:
         import dask
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from usdfiber.commands.arg_types import positive_int
 
-__all__ = ["add_bake_options", "run_bake", "wants_farm"]
+__all__ = ["add_bake_options", "check_farm_options", "run_bake", "wants_farm"]
 
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
@@ -33,6 +33,36 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
 def wants_farm(args: argparse.Namespace) -> bool:
     """Whether ``run_bake`` handles this command line."""
     return bool(args.scheduler or args.shard or args.json)
+
+
+def check_farm_options(args: argparse.Namespace) -> None:
+    """Refuse, with a one-line UsageError, farm options that cannot work: --scheduler with
+    --shard, a malformed --shard or --scheduler (no connection is tried), --plot or --compress
+    with the farm. Run before anything else, so that ``--dry-run`` refuses what a bake would."""
+    from usdfiber.cli import UsageError
+    from usdfiber.farm.cluster import FarmError, parse_scheduler
+    from usdfiber.farm.shard_spec import ShardSpecError, parse_shard
+
+    if args.scheduler is not None and args.shard is not None:
+        raise UsageError("--scheduler and --shard exclude each other: a shard runs in this process")
+    if args.shard is not None:
+        try:
+            parse_shard(args.shard)
+        except ShardSpecError as exc:
+            raise UsageError(f"--shard: {exc}") from None
+    if args.scheduler is not None:
+        try:
+            parse_scheduler(args.scheduler)
+        except FarmError as exc:
+            raise UsageError(str(exc)) from None
+    if wants_farm(args):
+        # No plots or compression there: tables are baked elsewhere (or in parts).
+        if args.plot:
+            raise UsageError("--plot writes figures next to tables baked here; not with --scheduler or --shard "
+                             "(plot them afterwards with `usdfiber table plot TABLE --figure errors`)")
+        if args.compress is not None:
+            raise UsageError("--compress compresses tables baked here; not with --scheduler or --shard "
+                             "(compress them afterwards with `usdfiber table compress --cache`)")
 
 
 def _print_summary(summary: Any, as_json: bool) -> None:
@@ -84,22 +114,18 @@ def run_bake(args: argparse.Namespace, reqs: list, settings: Any, cache: Any) ->
     """Run ``usdfiber bake`` with farm options (see the module docstring)."""
     from usdfiber.cli import UsageError
     from usdfiber.farm.cluster import FarmError, LocalFarm
-    from usdfiber.farm.shard_spec import ShardSpecError, parse_shard
+    from usdfiber.farm.shard_spec import parse_shard
     from usdfiber.farm.tasks import TASK_PHOTONS
 
-    if args.scheduler and args.shard:
-        raise UsageError("--scheduler and --shard exclude each other: a shard runs in this process")
+    check_farm_options(args)
     task_photons = args.task_photons or TASK_PHOTONS
     show = not args.no_progress
     try:
         if args.shard:
             from usdfiber.farm.shards import bake_shard
 
-            try:
-                shard = parse_shard(args.shard)
-            except ShardSpecError as exc:
-                raise UsageError(f"--shard: {exc}") from None
-            summary = bake_shard(reqs, settings, cache, shard, task_photons=task_photons, show_progress=show)
+            summary = bake_shard(reqs, settings, cache, parse_shard(args.shard), task_photons=task_photons,
+                                 show_progress=show)
         elif args.scheduler:
             from usdfiber.farm.dask_bake import bake_on_dask
 

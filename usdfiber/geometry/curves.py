@@ -27,6 +27,7 @@ vertex widths overshooting below zero) Mitsuba renders no surface: that is warne
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -39,7 +40,12 @@ __all__ = [
     "NORMALS_CHUNK",
     "UNIFORM_SCALE_RTOL",
     "CurveError",
+    "MAX_COORDINATE",
+    "TOO_LARGE_EXPECTED",
     "axis_scales",
+    "too_large",
+    "too_large_text",
+    "world_points_near_limit",
     "negative_vertex_widths",
     "CurveGeometry",
     "curves_from_prim",
@@ -54,6 +60,59 @@ __all__ = [
 class CurveError(PrimError):
     """Malformed BasisCurves data (a :class:`~usdfiber.errors.PrimError`: file, prim, attribute
     and what was expected)."""
+
+
+#: Largest |coordinate| and width (scene units, authored or in world space) a curve may have.
+#: Renderers hold geometry in float32 (largest value 3.4e38); ray-curve intersection squares
+#: coordinates and widths and sums a few such squares, so values of 1e18 and above (squares of
+#: 1e36 and above) overflow to Inf and the curve silently disappears. Zero widths are fine.
+MAX_COORDINATE = 1e18
+#: What :data:`MAX_COORDINATE` asks for, in messages.
+TOO_LARGE_EXPECTED = (f"expected magnitudes below {MAX_COORDINATE:g} (renderers work in float32, "
+                      f"where squares of larger values overflow)")
+
+
+def too_large(values: np.ndarray) -> np.ndarray:
+    """Indices of the rows of ``values`` (one value or point each) holding a magnitude of
+    :data:`MAX_COORDINATE` or more (NaN and Inf are the finiteness checks' to report)."""
+    if values.size == 0 or (values.max() < MAX_COORDINATE and values.min() > -MAX_COORDINATE):
+        return np.zeros(0, np.int64)
+    with np.errstate(invalid="ignore"):
+        big = np.isfinite(values) & (np.abs(values) >= MAX_COORDINATE)
+    return np.flatnonzero(big.reshape(len(values), -1).any(axis=1))
+
+
+def world_points_near_limit(points: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``points`` in world space (``m``: a row-vector local-to-world matrix) when a cheap bound of
+    their magnitude there reaches :data:`MAX_COORDINATE` (then :func:`too_large` says which are
+    beyond), else an empty array: the common case costs two passes and no copy."""
+    if points.size:
+        m = np.asarray(m, dtype=np.float64)
+        lo, hi = float(points.min()), float(points.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return np.zeros((0, 3))  # NaN or Inf authored: the finiteness checks'
+        reach = max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
+        if reach >= MAX_COORDINATE:
+            with np.errstate(over="ignore", invalid="ignore"):
+                world = points.astype(np.float64) @ m[:3, :3] + m[3, :3]
+            # Finite points that overflow float64 there are beyond the limit too.
+            big = np.finfo(np.float64).max
+            return np.nan_to_num(world, nan=big, posinf=big, neginf=-big)
+    return np.zeros((0, 3))
+
+
+def too_large_text(values: np.ndarray, noun: str) -> str | None:
+    """'2 points of magnitude 1e+18 or more (first: point 3, (1e+30, 0, 0)); expected ...' for
+    the rows of ``values`` that :func:`too_large` finds ('<noun> (...) is of magnitude ...' for
+    a single row), or None when there are none."""
+    bad = too_large(values)
+    if not bad.size:
+        return None
+    first = ", ".join(f"{x:g}" for x in np.atleast_1d(values[bad[0]]))
+    if len(values) == 1:
+        return f"{noun} ({first}) is of magnitude {MAX_COORDINATE:g} or more; {TOO_LARGE_EXPECTED}"
+    return (f"{bad.size} {noun}{'s' if bad.size > 1 else ''} of magnitude {MAX_COORDINATE:g} or more "
+            f"(first: {noun} {int(bad[0])}, ({first})); {TOO_LARGE_EXPECTED}")
 
 
 # Power-basis matrices M of USD's cubic bases: P(t) = [t^3, t^2, t, 1] @ M @ [P0, P1, P2, P3].
@@ -108,6 +167,12 @@ def _err(prim: Usd.Prim, attr: str, msg: str) -> CurveError:
     return CurveError.at(prim, attr, msg)
 
 
+def _too_large(prim: Usd.Prim, attr: str | None, values: np.ndarray, noun: str, where: str = "") -> None:
+    text = too_large_text(values, noun)
+    if text:
+        raise _err(prim, attr, where + text)
+
+
 def _token(prim: Usd.Prim, attr: Usd.Attribute, allowed: tuple[str, ...]) -> str:
     value = str(attr.Get())  # uniform attributes; Get() returns the schema fallback if unauthored
     if value not in allowed:
@@ -158,6 +223,7 @@ def _read_widths(
         raise _err(prim, name, f"interpolation {interp!r}, expected constant, uniform, varying or vertex")
     if not np.all(np.isfinite(w)):
         raise _err(prim, name, "contains NaN or Inf")
+    _too_large(prim, name, w, "width")
     if np.any(w < 0):
         raise _err(prim, name, f"contains negative widths (min {w.min():g}); widths are diameters >= 0")
     return w, interp, name, warnings
@@ -174,7 +240,8 @@ def axis_scales(m3: np.ndarray) -> tuple[np.ndarray, float, bool]:
     """(axis scales, their geometric mean, whether they differ beyond :data:`UNIFORM_SCALE_RTOL`)
     of the linear part ``m3`` (3x3) of a transform: the rule for a curve's radius under it."""
     sv = np.linalg.svd(np.asarray(m3, dtype=np.float64), compute_uv=False)
-    scale = float(np.prod(sv) ** (1.0 / 3.0))
+    with np.errstate(over="ignore"):  # scales past 1e100: Inf, which the bounds refuse
+        scale = float(np.prod(sv) ** (1.0 / 3.0))
     return sv, scale, bool(sv[0] - sv[-1] > UNIFORM_SCALE_RTOL * sv[0])
 
 
@@ -269,6 +336,7 @@ def curves_from_prim(
     if not np.all(np.isfinite(pts)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(pts), axis=1))[0])
         raise _err(prim, "points", f"contains NaN or Inf (first at index {bad})")
+    _too_large(prim, "points", pts, "point")
 
     widths, winterp, wname, warnings = _read_widths(prim, time, default_width)
 
@@ -321,7 +389,10 @@ def curves_from_prim(
     if not np.all(np.isfinite(pts)):
         raise _err(prim, None, "the local-to-world transform makes points NaN or Inf; expected a "
                    "finite transform")
+    world = "in world space (after the local-to-world transform) "
+    _too_large(prim, None, pts, "point", world)
     radius = radius * _linear_scale(prim, xform[:3, :3], warnings)
+    _too_large(prim, None, 2 * radius, "width", world)
 
     # Linear radius along each segment (ra, rb) unless widths are cubic-interpolated (vertex).
     cubic_radius = ctype == "cubic" and winterp == "vertex"

@@ -14,6 +14,9 @@ Codes (E = error, W = warning):
   pinned) or 3k (periodic).
 - ``CurvesCountsMismatch`` (E): sum(curveVertexCounts) != number of points.
 - ``PointsNotFinite`` (E): NaN or Inf in points.
+- ``PointsTooLarge`` (E): a coordinate of magnitude 1e18 or more, authored or after the
+  local-to-world transform (:data:`usdfiber.geometry.curves.MAX_COORDINATE`: renderers work in
+  float32, where its square overflows, and the curve silently disappears).
 - ``PointsWrongType`` (E): points authored with another type than point3f[].
 - ``TransformNotFinite`` (E): NaN or Inf in the local-to-world transform.
 - ``CurveZeroLength`` (W): all points of a curve are equal (to float32 precision): the
@@ -25,6 +28,8 @@ Codes (E = error, W = warning):
 - ``WidthsElementSize`` (E): primvars:widths with an elementSize other than 1.
 - ``WidthsCountMismatch`` (E): widths count differs from what its interpolation needs.
 - ``WidthsNotFinite`` (E): NaN or Inf in widths.
+- ``WidthsTooLarge`` (E): a width of 1e18 or more, authored or scaled by the transform (the
+  bound of ``PointsTooLarge``).
 - ``WidthNegative`` (E): a width is negative. Zero widths are valid: fibers taper to their
   tips (USD's own basisCurves example does).
 - ``WidthNegativeInterpolated`` (W): cubic Catmull-Rom vertex widths that overshoot below
@@ -64,7 +69,8 @@ import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from usdfiber.errors import PrimError
-from usdfiber.geometry.curves import axis_scales, curves_from_prim, negative_vertex_widths
+from usdfiber.geometry.curves import (MAX_COORDINATE, TOO_LARGE_EXPECTED, axis_scales, curves_from_prim,
+                                      negative_vertex_widths, too_large, world_points_near_limit)
 from usdfiber.spec.attributes import Fiber, Yarn
 from usdfiber.stage_io import animated_only
 from usdfiber.spec.yarn import yarn_diameter
@@ -439,9 +445,10 @@ def _is_uniform_fast(m: Gf.Matrix4d) -> bool:
     """True for the common case of a transform without scale or with one uniform scale
     (rows of the 3x3 part orthogonal and of equal length), without an SVD."""
     a = np.asarray(m)[:3, :3]
-    g = a @ a.T
-    d = float(g[0, 0])
-    return d > 0 and bool(np.all(np.abs(g - d * np.eye(3)) <= 1e-9 * d))
+    with np.errstate(over="ignore", invalid="ignore"):  # scales past 1e154: not uniform here, the SVD decides
+        g = a @ a.T
+        d = float(g[0, 0])
+        return d > 0 and bool(np.all(np.abs(g - d * np.eye(3)) <= 1e-9 * d))
 
 
 def _is_number(v: object) -> bool:
@@ -568,6 +575,7 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
     points_s = counts_s or bool(points_t)
     widths_s = bool(widths_t)
     mpu = UsdGeom.GetStageMetersPerUnit(prim.GetStage())
+    xforms = _stage_xforms(prim.GetStage())
     col = _Collector(prim)
 
     if widths_attr is None:
@@ -650,6 +658,17 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                     f"{_list(badp, 'point')} NaN or Inf coordinates; expected finite "
                     f"coordinates", t, points_s)
 
+        world = xforms.local_to_world(prim, t)
+        world = np.asarray(world) if _finite_matrix(world) else None
+        big, placed, where = too_large(points), points, ""
+        if not big.size and world is not None:
+            placed = world_points_near_limit(points, world)
+            big, where = too_large(placed), "in world space (after the local-to-world transform) "
+        if big.size:
+            col.add("PointsTooLarge", err, points_attr,
+                    f"{where}{_list(big, 'point')} a coordinate of magnitude {MAX_COORDINATE:g} or more "
+                    f"(e.g. {_vec(placed[big[0]])}); {TOO_LARGE_EXPECTED}", t, points_s)
+
         if topo_ok and counts.size:
             zero = zero_length_curves(points, counts)
             if zero.size:
@@ -704,6 +723,17 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                 col.add("WidthsNotFinite", err, widths_attr,
                         f"{_list(badw, 'width')} a NaN or Inf value; expected finite "
                         f"positive widths", t, widths_s)
+            scaled, where = widths, ""
+            big = too_large(widths)
+            if not big.size and world is not None and wmax > 0:
+                # Widths scale by the geometric mean of the axis scales (as the renderer does).
+                with np.errstate(over="ignore"):  # a determinant past float64: beyond the bound too
+                    scaled = widths * abs(float(np.linalg.det(world[:3, :3]))) ** (1.0 / 3.0)
+                big, where = too_large(scaled), "in world space (scaled by the local-to-world transform) "
+            if big.size:
+                col.add("WidthsTooLarge", err, widths_attr,
+                        f"{where}{_list(big, 'width')} a value of {MAX_COORDINATE:g} or more (e.g. "
+                        f"{scaled[big[0]]:g}); {TOO_LARGE_EXPECTED}", t, widths_s)
             if not wmin >= 0:
                 neg = np.flatnonzero(widths < 0)
                 if neg.size:
@@ -722,6 +752,10 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                 col.add("WidthMismatch", warn, widths_attr, msg, t, widths_s)
 
     return problems + col.problems() + xform_problems
+
+
+def _vec(p: np.ndarray) -> str:
+    return "(" + ", ".join(f"{float(x):g}" for x in p) + ")"
 
 
 def _animated_only_problems(prim: Usd.Prim, points_attr: Usd.Attribute) -> list[Problem]:
