@@ -166,6 +166,14 @@ def test_bake_command_estimator_option(tmp_path):
     assert len(tables) == 2       # another key: the uniform allocation's table
     assert {BcsdfTable.load(t).header["bake"]["settings"].get("expected_allocation") for t in tables} == {
         "adaptive", None}
+    # Normals from the distribution (the default) are in the header and key; visible ones keep earlier keys.
+    assert settings["expected_sampler"] == "ndf", settings
+    out = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-normals", "4",
+              "--expected-sampler", "visible", "--cache-dir", tmp_path / "a")
+    assert out.returncode == 0, out.stderr
+    tables = list((tmp_path / "a" / "tables").glob("*.npz"))
+    assert len(tables) == 3 and sum("expected_sampler" not in BcsdfTable.load(t).header["bake"]["settings"]
+                                    for t in tables) == 1
     wool = run(*base, "--preset", "wool", "--estimator", "expected", "--cache-dir", tmp_path / "b")
     assert wool.returncode == 1 and len(wool.stderr.strip().splitlines()) == 1, wool.stderr
     assert "cuticle scales" in wool.stderr and "--estimator plain" in wool.stderr
@@ -175,3 +183,6 @@ def test_bake_command_estimator_option(tmp_path):
     bad = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-allocation", "greedy",
               "--cache-dir", tmp_path / "c")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "greedy" in bad.stderr, bad.stderr
+    bad = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-sampler", "ggx",
+              "--cache-dir", tmp_path / "c")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "ggx" in bad.stderr, bad.stderr

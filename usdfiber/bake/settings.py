@@ -110,9 +110,10 @@ class BakeSettings:
     #: Walks per outer-surface hit of the "split" estimator (part of the cache key only with it).
     split_walks: int = 8
     #: Normals per outer-surface event of the "expected" estimator (in the cache key
-    #: only with it; bench/REPORT.md, section 7, chose the default); the most per event with
-    #: the adaptive allocation.
-    expected_normals: int = 8
+    #: only with it; bench/REPORT.md, section 7, chose the default: 32 gains most on whole
+    #: 2 degree tables, 1.2x over 16 and 1.0-1.2x over 64); the most per event with the adaptive
+    #: allocation.
+    expected_normals: int = 32
     #: Normals per event of the "expected" estimator: one of :data:`EXPECTED_ALLOCATIONS` (in
     #: the cache key only with it, and only when adaptive: uniform tables keep earlier keys).
     expected_allocation: str = "adaptive"
@@ -286,13 +287,15 @@ def directions_per_group(settings: BakeSettings) -> int:
 #: `usdfiber bake` makes the paper's 2 degree tables.
 RENDER_BAKE_SETTINGS = BakeSettings(resolution_deg=6.0, photons=100_000, batches=4)
 #: The render's tables of fibers without cuticle scales: the expected-value estimator with up to
-#: 8 normals per event (adaptive allocation) at 15k photons per direction. Measured on whole
-#: bakes (bench/REPORT.md, section 7, "whole bakes" and "allocation"), these reach a lower error
-#: than 100k plain photons in 0.69-0.83x the time (a silk or cotton variant at 6 degrees,
-#: polyester at 2). A silk close-up with these 6 degree tables is within 6 % of a full 2 degree
-#: table's highlight (section 10, "silk against a full 2 deg table").
+#: 16 normals per event (adaptive allocation, normals from the distribution) at 15k photons per
+#: direction. Measured on whole bakes (bench/REPORT.md, section 7, "whole bakes", "allocation"
+#: and "cheaper normals"): 8 visible normals reached a lower error than 100k plain photons in
+#: 0.69-0.83x the time (a silk or cotton variant at 6 degrees, polyester at 2); 16 normals from
+#: the distribution take 0.96-1.09x the time of those at 14-19 % less error (1.4x at equal
+#: error). A silk close-up with 6 degree tables of 8 visible normals is within 6 % of a full
+#: 2 degree table's highlight (section 10, "silk against a full 2 deg table").
 RENDER_EXPECTED_SETTINGS = replace(RENDER_BAKE_SETTINGS, photons=15_000, estimator=("expected",),
-                                   expected_normals=8)
+                                   expected_normals=16)
 #: Bins and incoming nodes of the tables a renderer bakes on demand for round fibers.
 ROUND_RENDER_RESOLUTION_DEG = 2.0
 

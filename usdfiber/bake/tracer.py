@@ -53,8 +53,8 @@ at every absorption level (:class:`ExitHistogram`). The normals are drawn from t
 distribution D(m) cos(theta_m) and weighted by the visible density over it,
 <wi, m>+ / ((1 + Lambda(wi)) cos(theta_i) cos(theta_m)) (``expected_sampler="ndf"``, the
 default: a logarithm and a sine per normal, where Beckmann's visible-normal sampler inverts
-its distribution numerically, 14x the arithmetic), or from the visible normals themselves
-(``"visible"``, weight 1). On an edge of the outline's convex hull
+its distribution numerically, 13x the time; bench/REPORT.md s. 7), or from the visible normals
+themselves (``"visible"``, weight 1). On an edge of the outline's convex hull
 (:attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line) every exit escapes;
 on the concave sides an escape ray per normal decides, as the real photon's next ray does. The
 real walk goes on; if it then takes exactly that outcome it ends unrecorded (on the concave
@@ -595,8 +595,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         pk_n, pk_g = histogram.stride // histogram.packet, histogram.packet
         hist = dr.zeros(mi.Float64, hist_n * histogram.stride * nbin)
         # A deposit's 2 x levels values are adjacent (bin-major histograms) and added as packets
-        # of pk_g values, to a private copy per thread where they fit (no atomics; 1.4x
-        # faster expected-value bakes on rough silk, bench/REPORT.md s. 7), else atomically.
+        # of pk_g values, to a private copy per thread where they fit (no atomics: 1.6x less
+        # CPU per expected-value trace of rough silk, bench/REPORT.md s. 7), else atomically.
         hist_mode = dr.ReduceMode.Expand if _hist_copies(histogram) > 1 else dr.ReduceMode.Direct
         ArrayXf64 = getattr(importlib.import_module(type(hist).__module__), "ArrayXf64")
         pad64 = mi.Float64(0.0)
