@@ -89,6 +89,18 @@ def test_expected_is_unbiased_against_plain(case):
     assert c.agrees(), c
 
 
+def _two_ways(case, seed0: int, **ways):
+    """8 batches of expected values of ``case`` each way (a name: trace keyword arguments) from the
+    same seeds, and ``compare_blocks`` of the first way's densities against the second's, bin by
+    bin at absorption."""
+    name, theta, phi, beta = case
+    fs = scene(name)
+    res = {k: trace_many(fs, [(theta, phi)] * 8, 1 << 13, eta=ETA, beta_deg=beta, seed=list(range(seed0, seed0 + 8)),
+                         expected=8, histogram=HIST, **kw) for k, kw in ways.items()}
+    a, b = ([bin_direct(r, SIGMA, GRID)[..., None] for r in v] for v in res.values())
+    return res, compare_blocks(a, b, block=1)
+
+
 # Rough silk and deep three-lobed profiles (concave sides), and the rough circle at grazing
 # incidence, where the reflections on the outside carry much of the light.
 ALLOCATION_CASES = [("silk", 0.5, 0.9, 6.5), ("star", 0.6, 1.1, 8.0), ("circle", 1.45, 0.0, 8.0)]
@@ -101,13 +113,8 @@ def test_adaptive_allocation_is_unbiased_against_uniform(case):
     per case); the walks are the same photons, so the events are the same and the adaptive one
     evaluates fewer normals. Catches deposits weighted 1/K instead of 1/(the event's normals)
     (mass short by the normals saved: the furnace tests fail too)."""
-    name, theta, phi, beta = case
-    fs = scene(name)
-    res = {alloc: trace_many(fs, [(theta, phi)] * 8, 1 << 13, eta=ETA, beta_deg=beta, seed=list(range(300, 308)),
-                             expected=8, histogram=HIST, expected_allocation=alloc)
-           for alloc in ("uniform", "adaptive")}
-    a, b = ([bin_direct(r, SIGMA, GRID)[..., None] for r in res[k]] for k in ("uniform", "adaptive"))
-    c = compare_blocks(a, b, block=1)
+    res, c = _two_ways(case, 300, uniform=dict(expected_allocation="uniform"),
+                       adaptive=dict(expected_allocation="adaptive"))
     assert c.agrees(), c
     ev = {k: sum(r.extra["expected_events"] for r in v) for k, v in res.items()}
     nn = {k: sum(r.extra["expected_normals"] for r in v) for k, v in res.items()}
@@ -127,13 +134,7 @@ def test_ndf_normals_are_unbiased_against_visible_normals(case):
     (``compare_blocks``, false failure 1e-4 per case; the same walks, other normals). Catches
     a weight without G1(wi) (mass too high by 1 + Lambda(wi): fails the grazing circle and
     cotton) or without its 1 / cos(theta_m) (cotton; the furnace tests fail too)."""
-    name, theta, phi, beta = case
-    fs = scene(name)
-    res = {smp: trace_many(fs, [(theta, phi)] * 8, 1 << 13, eta=ETA, beta_deg=beta, seed=list(range(400, 408)),
-                           expected=8, histogram=HIST, expected_sampler=smp)
-           for smp in ("visible", "ndf")}
-    a, b = ([bin_direct(r, SIGMA, GRID)[..., None] for r in res[k]] for k in ("visible", "ndf"))
-    c = compare_blocks(a, b, block=1)
+    res, c = _two_ways(case, 400, visible=dict(expected_sampler="visible"), ndf=dict(expected_sampler="ndf"))
     assert c.agrees(), c
     assert all(np.array_equal(x.directions, y.directions) for x, y in zip(res["visible"], res["ndf"]))
 

@@ -326,7 +326,36 @@ def test_points_and_widths_too_large_for_float32():
     pts[6, 1] = -below
     ok = add_curves(stage, "/G", [4, 4], points=pts, widths=[0, 10, 10, 10, 10, 10, 10, 0],
                     interpolation="vertex")
-    assert check_curves_prim(ok) == []
+    # No error; 10 units wide next to a coordinate of 1e18 is below float32's precision there.
+    assert codes(check_curves_prim(ok)) == ["WidthBelowPrecision"]
+
+
+def test_widths_below_the_float32_precision_of_their_position():
+    """A 10 um fiber 1 km from the origin (1e9 units) is narrower than 2^-22 of its coordinates
+    (238 units): it renders with holes or vanishes. A warning in check, the same warning from the
+    renderer's conversion; 1 m away (1e6: 0.24 units) it is fine, and zero-width tips never warn.
+    (Points a centimetre apart, which float32 still tells apart at 1e9.)"""
+    from usdfiber.geometry.curves import curves_from_prim
+
+    stage = new_stage()
+    far = add_curves(stage, "/Far", [4], points=curve_points([4]) * np.float32(1000) + np.float32([1e9, 0, 0]),
+                     widths=[0, 10, 10, 0], interpolation="vertex")
+    probs = check_curves_prim(far)
+    assert codes(probs) == ["WidthBelowPrecision"]
+    w = only(probs, "WidthBelowPrecision")
+    assert w.severity is Severity.WARNING and w.attribute == "widths"
+    assert "2 widths narrower than 238.4" in w.message and "(1.00003e+09)" in w.message
+    assert "nearer the origin" in w.message
+    geom = curves_from_prim(far, Usd.TimeCode.Default(), None)
+    assert sum("narrower than 238.4" in text for text in geom.warnings) == 1
+    near = add_curves(stage, "/Near", [4], points=curve_points([4]) + np.float32([1e6, 0, 0]))
+    assert check_curves_prim(near) == []
+    assert not any("narrower than" in text for text in curves_from_prim(near, Usd.TimeCode.Default(), None).warnings)
+    # Moved there by a transform: the same, in world space.
+    xf = UsdGeom.Xform.Define(stage, "/Moved")
+    xf.AddTranslateOp().Set(Gf.Vec3d(0, 0, -1e9))
+    moved = add_curves(stage, "/Moved/F", [4])
+    assert codes(check_curves_prim(moved)) == ["WidthBelowPrecision"]
 
 
 def test_points_and_widths_too_large_in_world_space():

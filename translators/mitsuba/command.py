@@ -50,6 +50,18 @@ def _spp(text: str) -> int:
     return n
 
 
+#: Longest light path ``--max-depth`` takes (Mitsuba's depth is a 32-bit integer; paths this
+#: long are ended by Russian roulette long before).
+MAX_DEPTH = 65536
+
+
+def _max_depth(text: str) -> int:
+    n = positive_int(text)
+    if n > MAX_DEPTH:
+        raise argparse.ArgumentTypeError(f"expected a path depth of at most {MAX_DEPTH}, got {text}")
+    return n
+
+
 def _exposure(text: str) -> float:
     x = finite_float(text)
     if abs(x) > 100.0:
@@ -77,7 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="cpu: Mitsuba llvm_ad_rgb; gpu: cuda_ad_rgb (default: cpu)")
     p.add_argument("--threads", type=positive_int, help="CPU threads (default: all cores)")
     p.add_argument("--seed", type=seed, default=0, help="sampler seed, 0 to 2^32 - 1 (default: 0)")
-    p.add_argument("--max-depth", type=positive_int, default=32, help="longest light path (default: 32)")
+    p.add_argument("--max-depth", type=_max_depth, default=32, help=f"longest light path (default: 32, at most {MAX_DEPTH})")
     p.add_argument("--purpose", action="append", choices=("default", "render", "proxy", "guide"),
                    help="purposes to render (repeatable; default: the render settings' or default+render)")
     p.add_argument("--bake-resolution", type=positive_float, metavar="DEG",
@@ -164,11 +176,18 @@ def run(args: argparse.Namespace) -> int:
                     cloth=args.cloth,
                     yarn_resolution_deg=args.yarn_bake_resolution, yarn_photons=args.yarn_bake_photons,
                     aovs=_aov_list(args.aov) if args.aov is not None else (), model=_model(args.model))
+    if args.scheduler is not None:
+        from usdfiber.farm.cluster import FarmError, parse_scheduler
+
+        try:
+            parse_scheduler(args.scheduler)     # without connecting: the address's form
+        except FarmError as exc:
+            raise UsageError(str(exc)) from None
     if args.frames is not None:
         from usdfiber.translators.mitsuba.sequence import run_sequence_command
 
         return run_sequence_command(args, job, render_summary)
-    if args.scheduler or args.shard:
+    if args.scheduler is not None or args.shard is not None:
         raise UsageError("--scheduler and --shard go with --frames")
     bake_progress = None if args.no_progress else _bake_progress()
     try:

@@ -43,8 +43,10 @@ __all__ = [
     "MAX_COORDINATE",
     "TOO_LARGE_EXPECTED",
     "axis_scales",
+    "WIDTH_PRECISION",
     "too_large",
     "too_large_text",
+    "unresolved_widths_text",
     "world_points_near_limit",
     "negative_vertex_widths",
     "CurveGeometry",
@@ -70,6 +72,32 @@ MAX_COORDINATE = 1e18
 #: What :data:`MAX_COORDINATE` asks for, in messages.
 TOO_LARGE_EXPECTED = (f"expected magnitudes below {MAX_COORDINATE:g} (renderers work in float32, "
                       f"where squares of larger values overflow)")
+
+
+#: Narrowest width a curve may have relative to the largest magnitude of its points' world
+#: coordinates: 2^-22 of it, a radius of one float32 step there. Narrower tubes are thinner than
+#: the float32 precision of their own position, which the renderer's intersection works in:
+#: they render with holes or vanish (a warning, the curves are still drawn).
+WIDTH_PRECISION = 2.0 ** -22
+
+
+def unresolved_widths_text(world_points: np.ndarray, world_widths: np.ndarray) -> str | None:
+    """'3 widths narrower than ...' when positive widths (``world_widths``, in world space) are
+    narrower than :data:`WIDTH_PRECISION` of the largest coordinate magnitude of
+    ``world_points``, else None. Zero widths (tapered tips) are fine."""
+    if not world_points.size or not world_widths.size:
+        return None
+    magnitude = float(np.abs(world_points).max())
+    limit = magnitude * WIDTH_PRECISION
+    w = np.asarray(world_widths, dtype=np.float64).ravel()
+    thin = np.flatnonzero((w > 0) & (w < limit))
+    if not thin.size:
+        return None
+    return (f"{thin.size} width{'s' if thin.size > 1 else ''} narrower than {limit:g} (e.g. {w[thin[0]]:g} in "
+            f"world space): 2^-22 of the points' largest coordinate ({magnitude:g}), a radius below one "
+            f"float32 step there, where the renderer intersects them, so these curves render with holes "
+            f"or vanish; "
+            f"expected the asset nearer the origin, or wider curves")
 
 
 def too_large(values: np.ndarray) -> np.ndarray:
@@ -393,6 +421,9 @@ def curves_from_prim(
     _too_large(prim, None, pts, "point", world)
     radius = radius * _linear_scale(prim, xform[:3, :3], warnings)
     _too_large(prim, None, 2 * radius, "width", world)
+    thin = unresolved_widths_text(pts, 2 * radius)
+    if thin:
+        warnings.append(f"{prim.GetPath()}: attribute '{wname}': {thin}")
 
     # Linear radius along each segment (ra, rb) unless widths are cubic-interpolated (vertex).
     cubic_radius = ctype == "cubic" and winterp == "vertex"

@@ -30,6 +30,9 @@ Codes (E = error, W = warning):
 - ``WidthsNotFinite`` (E): NaN or Inf in widths.
 - ``WidthsTooLarge`` (E): a width of 1e18 or more, authored or scaled by the transform (the
   bound of ``PointsTooLarge``).
+- ``WidthBelowPrecision`` (W): widths narrower than 2^-22 of the points' largest world
+  coordinate (:data:`usdfiber.geometry.curves.WIDTH_PRECISION`): a radius below one float32
+  step there, the curves render with holes or vanish.
 - ``WidthNegative`` (E): a width is negative. Zero widths are valid: fibers taper to their
   tips (USD's own basisCurves example does).
 - ``WidthNegativeInterpolated`` (W): cubic Catmull-Rom vertex widths that overshoot below
@@ -70,7 +73,8 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from usdfiber.errors import PrimError
 from usdfiber.geometry.curves import (MAX_COORDINATE, TOO_LARGE_EXPECTED, axis_scales, curves_from_prim,
-                                      negative_vertex_widths, too_large, world_points_near_limit)
+                                      negative_vertex_widths, too_large, unresolved_widths_text,
+                                      world_points_near_limit)
 from usdfiber.spec.attributes import Fiber, Yarn
 from usdfiber.stage_io import animated_only
 from usdfiber.spec.yarn import yarn_diameter
@@ -734,6 +738,12 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                 col.add("WidthsTooLarge", err, widths_attr,
                         f"{where}{_list(big, 'width')} a value of {MAX_COORDINATE:g} or more (e.g. "
                         f"{scaled[big[0]]:g}); {TOO_LARGE_EXPECTED}", t, widths_s)
+            elif world is not None and n_points and math.isfinite(wmax) and wmax > 0:
+                with np.errstate(over="ignore", invalid="ignore"):
+                    world_pts = np.asarray(points, dtype=np.float64) @ world[:3, :3] + world[3, :3]
+                thin = unresolved_widths_text(world_pts, scaled) if np.isfinite(world_pts).all() else None
+                if thin:
+                    col.add("WidthBelowPrecision", warn, widths_attr, thin, t, widths_s)
             if not wmin >= 0:
                 neg = np.flatnonzero(widths < 0)
                 if neg.size:
