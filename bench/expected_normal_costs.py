@@ -125,7 +125,8 @@ def samplers(lanes: int) -> dict:
 
     parts = {"visible normal (Mitsuba)": lambda: distr.sample(wi, mi.Point2f(u1, u2))[0],
              "normal from D cos + weight": ndf,
-             "Smith G1 (Mitsuba; the escape probability's kind)": lambda: distr.smith_g1(wi, dr.normalize(V3(u1 - 0.5, u2 - 0.5, 2.0))),
+             "Smith G1 (Mitsuba; the escape probability's kind)":
+                 lambda: distr.smith_g1(wi, dr.normalize(V3(u1 - 0.5, u2 - 0.5, 2.0))),
              "bin arcsine (float64)": lambda: dr.asin(dr.clip(mi.Float64(wi.z), -1.0, 1.0)),
              "Fresnel": lambda: mi.fresnel(dr.abs(wi.z), 1.55)[0],
              "frame to world": lambda: mi.Frame3f(dr.normalize(V3(u1, u2, 1.0))).to_world(wi),

@@ -89,7 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="cpu: Mitsuba llvm_ad_rgb; gpu: cuda_ad_rgb (default: cpu)")
     p.add_argument("--threads", type=positive_int, help="CPU threads (default: all cores)")
     p.add_argument("--seed", type=seed, default=0, help="sampler seed, 0 to 2^32 - 1 (default: 0)")
-    p.add_argument("--max-depth", type=_max_depth, default=32, help=f"longest light path (default: 32, at most {MAX_DEPTH})")
+    p.add_argument("--max-depth", type=_max_depth, default=32,
+                   help=f"longest light path (default: 32, at most {MAX_DEPTH})")
     p.add_argument("--purpose", action="append", choices=("default", "render", "proxy", "guide"),
                    help="purposes to render (repeatable; default: the render settings' or default+render)")
     p.add_argument("--bake-resolution", type=positive_float, metavar="DEG",

@@ -1410,8 +1410,8 @@ def trace(
     weight of its exiting branch (:data:`_EV_TILT`), "uniform" K to every event; the result's
     ``extra`` counts ``expected_events`` and ``expected_normals``. ``expected_sampler``: "ndf"
     (default) draws the normals from the normal distribution and weights them by their
-    visibility, "visible" from the visible normals (see the module docstring). Many directions are faster
-    together: :func:`trace_many`.
+    visibility, "visible" from the visible normals (see the module docstring). Many directions
+    are faster together: :func:`trace_many`.
     """
     return trace_many(profile, [(theta_i, phi_i)], n_photons, eta=eta, beta_deg=beta_deg,
                       max_bounces=max_bounces, seed=seed, cuticle=cuticle, batch=batch, mode=mode,
