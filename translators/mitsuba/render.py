@@ -102,9 +102,11 @@ def _validate(stage: Any, path: str, frame: float | None, strict: bool) -> list[
     return [format_problem(p) for p in report.warnings]
 
 
-def render_stage(job: RenderJob, log: TextIO = sys.stderr,
+def render_stage(job: RenderJob, log: TextIO | None = None,
                  bake_progress: Callable[..., Any] | None = None) -> RenderResult:
-    """Run the whole render (see the module docstring); raises RenderRefused with a readable message."""
+    """Run the whole render (see the module docstring); raises RenderRefused with a readable message.
+    ``log`` (default: ``sys.stderr`` at the time of the call) gets the bake estimates."""
+    log = sys.stderr if log is None else log
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     try:
