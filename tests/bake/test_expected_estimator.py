@@ -222,15 +222,18 @@ def test_launches_cut_for_bounded_histograms_give_the_same_photons(monkeypatch):
         assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("copies", [1, 2])
-def test_deposits_to_copies_per_thread_equal_atomic_adds(monkeypatch, copies):
+@pytest.mark.parametrize("copies,packets", [(1, True), (2, True), (1, False)])
+def test_deposits_to_copies_per_thread_equal_atomic_adds(monkeypatch, copies, packets):
     """Deposits go as packets to a private copy of the histograms per thread where the copies fit
-    (``_hist_copies``), else atomically to one copy: the same sums, in another order."""
+    (``_hist_copies``), else atomically to one copy, and value by value where packets are not
+    used (the GPU): the same sums, in another order (3 levels: 6 values padded to 8 a bin)."""
     fs = scene("silk")
     dirs = [(0.3, 0.1), (0.9, 2.2)]
-    ref = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=HIST)
+    hist = ExitHistogram.for_grid(GRID, [0.0, SIGMA, 0.3])
+    ref = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=hist)
     monkeypatch.setattr(tracer, "_hist_copies", lambda histogram: copies)
-    got = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=HIST)
+    monkeypatch.setattr(tracer, "_packet_deposits", lambda: packets)
+    got = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=hist)
     for x, y in zip(ref, got):
         assert x.histogram.sum() > 0.0 and np.array_equal(x.directions, y.directions)
         assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)

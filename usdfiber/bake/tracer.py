@@ -304,11 +304,18 @@ class ExitHistogram:
         return self.stride * self.n_bins * 8
 
 
+def _packet_deposits() -> bool:
+    """Whether deposits are packet adds: on the CPU (LLVM) backend; the GPU's takes one atomic
+    add per value, as it always has."""
+    return mitsuba().variant().startswith("llvm")
+
+
 def _hist_copies(histogram: ExitHistogram) -> int:
     """Copies of a launch's histograms that its deposits write: one per CPU thread (packet adds
     to a private copy, Dr.Jit's ``ReduceMode.Expand``: no atomics) where a direction's copies
     fit :data:`_HIST_BYTES`, else one shared copy with atomic adds."""
-    mitsuba()  # the JIT variant (and LLVM) before drjit is used
+    if not _packet_deposits():
+        return 1
     import drjit as dr
 
     threads = max(1, int(dr.thread_count()))
@@ -598,6 +605,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         # of pk_g values, to a private copy per thread where they fit (no atomics: 1.6x less
         # CPU per expected-value trace of rough silk, bench/REPORT.md s. 7), else atomically.
         hist_mode = dr.ReduceMode.Expand if _hist_copies(histogram) > 1 else dr.ReduceMode.Direct
+        packets = _packet_deposits()
         ArrayXf64 = getattr(importlib.import_module(type(hist).__module__), "ArrayXf64")
         pad64 = mi.Float64(0.0)
         hist_beam = U(launch.beam.astype(np.uint32) - np.uint32(hist_first))
@@ -630,14 +638,18 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         col = dr.select(col >= nph_o, col - nph_o, col)
         # Bin-major: a deposit's 2 x levels values share a few cache lines (level-major, each
         # add was a cache miss of its own: 2.2x the deposit kernel's time at 11 levels).
-        base = (hb * nbin + row * nph_o + col) * pk_n
+        cell = hb * nbin + row * nph_o + col
         vals = []
         for k in range(nlev):
             wk = wt * att[k]
             vals += [mi.Float64(wk), mi.Float64(wk * L)]
+        if not packets:
+            for i, v in enumerate(vals):
+                dr.scatter_reduce(dr.ReduceOp.Add, hist, v, cell * (pk_n * pk_g) + i, mask, mode=hist_mode)
+            return
         vals += [pad64] * (pk_n * pk_g - len(vals))
         for q in range(pk_n):
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, ArrayXf64(vals[q * pk_g:(q + 1) * pk_g]), base + q, mask,
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, ArrayXf64(vals[q * pk_g:(q + 1) * pk_g]), cell * pk_n + q, mask,
                               mode=hist_mode)
 
     def attenuation(L: Any) -> list:
