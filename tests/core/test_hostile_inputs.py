@@ -225,6 +225,64 @@ TABLE_CASES = [
 ]
 
 
+def _crafted(change: Callable[[dict], None], *, compressed: bool = False) -> Callable[[Path], list[str]]:
+    """A small table of the real layout with valid checksums, its arrays changed by ``change``
+    after any compression (a hand-edited file: the container cannot tell)."""
+    from usdfiber.bake.compression import compress_table
+    from usdfiber.bake.grid import Grid
+    from usdfiber.bake.storage import LAYOUT, LAYOUT_VERSION, write_table_file
+    from usdfiber.bake.table import BcsdfTable
+
+    def argv(tmp: Path) -> list[str]:
+        g = Grid(30.0, True, False)
+        lv = np.array([0.0, 1.0, 4.0])
+        dirs, B = (g.n_theta_i, g.n_phi_i), g.n_theta_o - 2
+        shape = (*dirs, len(lv), B, g.n_phi_o)
+        p = np.random.default_rng(0).random(shape).astype(np.float16)
+        arrays = {"p": p, "p_scale": np.ones((*dirs, len(lv)), np.float32), "lbar": np.ones(shape, np.float16),
+                  "band_start": np.ones(dirs, np.int16), "albedo": np.full((*dirs, len(lv)), 0.5, np.float32),
+                  "albedo_lbar": np.ones((*dirs, len(lv)), np.float32), "levels": lv,
+                  "width": np.ones(720, np.float32), "rel_error": np.zeros(dirs, np.float32),
+                  "photons": np.ones(dirs, np.int64)}
+        header = {"layout": {"name": LAYOUT, "version": LAYOUT_VERSION}, "resolution": g.to_header(),
+                  "baked_diameter_um": 1.0, "geometry_key": "", "inputs": {}, "photons": 1, "error_estimate": 0}
+        if compressed:
+            header, arrays = compress_table(BcsdfTable(header=header, arrays=arrays), 0.5)
+        change(arrays)
+        write_table_file(tmp / "t.npz", header, arrays)
+        return ["table", "inspect", str(tmp / "t.npz")]
+    return argv
+
+
+def _set(name: str, value) -> Callable[[dict], None]:
+    def change(arrays: dict) -> None:
+        a = arrays[name].copy()
+        a.flat[0] = value
+        arrays[name] = a
+    return change
+
+
+#: Tables whose checksums hold and whose shapes fit but whose values cannot be used.
+TABLE_CASES += [
+    Case("table-crafted-p-nan", _crafted(_set("p", np.nan)), 2, r"t.npz: not a usable table: array p holds NaN"),
+    Case("table-crafted-p-negative", _crafted(_set("p", -1.0)), 2, r"t.npz: not a usable table: array p holds neg"),
+    Case("table-crafted-p-scale-inf", _crafted(_set("p_scale", np.inf)), 2, r"array p_scale holds NaN or infinite"),
+    Case("table-crafted-lbar-negative", _crafted(_set("lbar", -2.0)), 2, r"array lbar holds negative values"),
+    Case("table-crafted-width-nan", _crafted(_set("width", np.nan)), 2, r"array width holds NaN or infinite"),
+    Case("table-crafted-photons-negative", _crafted(_set("photons", -5)), 2, r"array photons holds negative"),
+    Case("table-crafted-p-integers", _crafted(lambda a: a.update(p=a["p"].astype(np.int32))), 2,
+         r"not a usable table: array p has dtype int32, expected floats"),
+    Case("table-crafted-p-text", _crafted(lambda a: a.update(p=a["p"].astype("U3"))), 2,
+         r"not a usable table: array p has dtype <U3, expected floats"),
+    Case("table-crafted-band-start-floats", _crafted(lambda a: a.update(band_start=a["band_start"] + 0.5)), 2,
+         r"array band_start has dtype float64, expected integers"),
+    Case("table-crafted-width-empty", _crafted(lambda a: a.update(width=np.zeros(0, np.float32))), 2,
+         r"array width has shape \(0,\), expected \(n,\) with n >= 1"),
+    Case("table-crafted-compressed-coef-nan", _crafted(_set("coef", np.nan), compressed=True), 2,
+         r"not a usable table: array coef holds NaN or infinite values"),
+]
+
+
 # ---- curve files ---------------------------------------------------------------------------------
 
 def _bcc(n_curves_header: int = 1, curves: list[tuple[int, list]] | None = None, magic: bytes = b"BCC",
