@@ -477,6 +477,8 @@ CLI_CASES = [
          r"every channel must be from 1e-06 to 1e\+06 \(got R 9.99989e-321; a channel without light"),
     Case("cli-dye-light-1500K", _args("dye", "--match", "0.1,0.1,0.1", "--fiber", "silk", "--no-bake", "--light",
                                       "1500K"), 2, r"'1500K': every channel must be from 1e-06 to 1e\+06 \(got B 0;"),
+    Case("cli-bake-compress-bound-tiny", _args("bake", "--preset", "silk", "--dry-run", "--compress", "1e-300"), 2,
+         r"--compress: must be in \[0.0001, 1\) \(relative L2 error of p"),
     Case("cli-check-nothing", _args("check"), 2, r"required: STAGE"),
     Case("cli-table-inspect-nothing", _args("table", "inspect"), 2, r"required: FILE"),
 ]
