@@ -348,6 +348,11 @@ CURVE_CASES = [
     Case("bcc-bad-root", _import("c.bcc", _bcc(), "--root", "1 bad name"), 2, r"--root must be a valid prim name"),
     Case("bcc-over-budget", _import("c.bcc", _bcc(), "--memory-budget", "100"), 2,
          r"c.bcc: importing a curve file of \d+ bytes .* needs about .*--memory-budget"),
+    Case("bcc-zero-length-curve", _import("c.bcc", _bcc(n_curves_header=2, curves=[
+        (3, [(0, 0, 0), (1, 0, 0), (2, 1, 0)]), (2, [(5, 5, 5)] * 2)])), 0,
+         r"note: curve 1 has all points equal \(zero length; 1 such curve\): it cannot be shaded"),
+    Case("hair-zero-length-strand", _import("h.hair", _hair(pts=[(1, 1, 1)] * 3)), 0,
+         r"note: curve 0 has all points equal \(zero length; 1 such curve\)"),
     Case("hair-truncated-header", _import("h.hair", b"HAIR" + b"\0" * 20), 2, r"truncated header: the file has 24 bytes"),
     Case("hair-zero-strands", _import("h.hair", _hair(strands=0)), 2, r"header says 0 strands; nothing to import"),
     Case("hair-no-points-flag", _import("h.hair", _hair(flags=4)), 2, r"say the file has no points array"),
