@@ -53,8 +53,8 @@ from usdfiber.spec.fiber import mu_a_per_um
 
 __all__ = [
     "ColourOutOfReach", "DyeMatch", "DyeMatchError", "FiberColour", "author_dye", "default_dye_class",
-    "extinction_range", "light_rgb", "linear_to_srgb", "match_dye", "parse_colour", "spectral_extinction",
-    "srgb_hex", "srgb_to_linear",
+    "extinction_range", "LIGHT_RANGE", "light_rgb", "linear_to_srgb", "match_dye", "parse_colour",
+    "spectral_extinction", "srgb_hex", "srgb_to_linear",
 ]
 
 #: Azimuths of the average over rotations (the tables' finest grid is 2 degrees).
@@ -118,9 +118,15 @@ def parse_colour(text: str) -> np.ndarray:
     return rgb
 
 
+#: The radiance a light may have per channel, relative to the white light of radiance 1 that
+#: target colours are for (beyond it every colour is out of reach, or the sums overflow).
+LIGHT_RANGE = (1e-6, 1e6)
+
+
 def light_rgb(text: str | None) -> np.ndarray:
     """The light's colour (linear Rec.709): ``white`` (1, 1, 1), ``6500K`` (a blackbody of
-    luminance 1, :func:`usdfiber.colour.blackbody_rgb`) or ``r,g,b`` (each > 0)."""
+    luminance 1, :func:`usdfiber.colour.blackbody_rgb`; below about 1950K it has no blue) or
+    ``r,g,b``, each channel in :data:`LIGHT_RANGE`."""
     if text is None or text.strip().lower() in ("", "white"):
         return np.ones(3)
     t = text.strip()
@@ -134,9 +140,10 @@ def light_rgb(text: str | None) -> np.ndarray:
         rgb = np.asarray(blackbody_rgb(kelvin), dtype=np.float64)
     else:
         rgb = _triple(t, "light")
-    if np.any(rgb <= 0):
-        raise DyeMatchError(f"light {text!r}: every channel must be > 0 (a channel without light "
-                            f"cannot be matched)")
+    bad = [f"{c} {v:g}" for c, v in zip("RGB", rgb) if not LIGHT_RANGE[0] <= v <= LIGHT_RANGE[1]]
+    if bad:
+        raise DyeMatchError(f"light {text!r}: every channel must be from {LIGHT_RANGE[0]:g} to {LIGHT_RANGE[1]:g} "
+                            f"(got {', '.join(bad)}; a channel without light cannot be matched)")
     return rgb
 
 

@@ -166,9 +166,9 @@ def read_curves(path: str | os.PathLike[str]) -> CurveData:
     data = _read_bytes(path)
     name = _name(path)
     if data[:3] == b"BCC":
-        return _parse_bcc(data, path)
+        return _noted(_parse_bcc(data, path))
     if data[:4] == b"HAIR":
-        return _parse_hair(data, path)
+        return _noted(_parse_hair(data, path))
     if not data:
         raise CurveFileError(f"{name}: empty file; expected a BCC or HAIR curve file")
     raise CurveFileError(
@@ -178,12 +178,27 @@ def read_curves(path: str | os.PathLike[str]) -> CurveData:
 
 def read_bcc(path: str | os.PathLike[str]) -> CurveData:
     """Read a BCC file; CurveFileError when it is not one or is malformed."""
-    return _parse_bcc(_read_bytes(path), path)
+    return _noted(_parse_bcc(_read_bytes(path), path))
 
 
 def read_hair(path: str | os.PathLike[str]) -> CurveData:
     """Read a HAIR file; CurveFileError when it is not one or is malformed."""
-    return _parse_hair(_read_bytes(path), path)
+    return _noted(_parse_hair(_read_bytes(path), path))
+
+
+def _noted(data: CurveData) -> CurveData:
+    """``data`` with a note naming its curves of zero length (all points equal): they are
+    imported as they are, and check and render warn about them (CurveZeroLength)."""
+    counts = np.asarray(data.counts, dtype=np.int64)
+    if len(counts) and counts.min() > 0:
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        pts = np.asarray(data.points)
+        flat = np.all(np.maximum.reduceat(pts, starts) == np.minimum.reduceat(pts, starts), axis=1)
+        if flat.any():
+            data.notes.append(f"curve {int(np.argmax(flat))} has all points equal (zero length; "
+                              f"{_plural(int(flat.sum()), 'such curve')}): it cannot be shaded, remove it "
+                              f"from the file (check and render warn: CurveZeroLength)")
+    return data
 
 
 def _check_points(name: str, pts: np.ndarray, counts: np.ndarray, what: str) -> None:

@@ -186,8 +186,10 @@ def test_bytes_of_another_codec_are_refused(compressed, tmp_path):
 
 def test_unreachable_bound_is_refused(silk_table):
     with pytest.raises(compression.CompressionError) as exc:
-        silk_table.compress(1e-7, rank=compression.MAX_RANK)
+        silk_table.compress(compression.MIN_BOUND, rank=compression.MAX_RANK)
     assert "\n" not in str(exc.value) and "compression error" in str(exc.value)
+    with pytest.raises(compression.CompressionError, match=r"bound must be in \[0.0001, 1\), got 1e-07"):
+        silk_table.compress(1e-7)   # below float16 rounding (its codec tolerance underflowed)
     with pytest.raises(compression.CompressionError):
         silk_table.compress(0.0)
 

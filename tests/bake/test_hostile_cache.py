@@ -135,6 +135,62 @@ def test_a_chunk_names_its_bake_and_direction(tmp_path):
     assert not list(rd.path.glob("d*.npz"))
 
 
+@pytest.mark.parametrize("name, change, reason", [
+    ("nan-H", lambda d: d["H"].__setitem__((0, 0, 0), np.nan), "H holds values that are not finite"),
+    ("negative-G", lambda d: d["G"].__setitem__((1, 1, 1), -1.0), "G holds values that are not finite"),
+    ("inf-norm", lambda d: d.update(norm=np.inf), "scalars holds values that are not finite"),
+    ("negative-photons", lambda d: d.update(photons=-3), "scalars holds values that are not finite"),
+    ("integer-H", lambda d: d.update(H=np.ones((2, 2, 3), np.int32)), "H holds values that are not finite"),
+    ("other-levels", lambda d: d.update(H=np.ones((5, 2, 3)), G=np.ones((5, 2, 3))),
+     r"H has shape \(5, 2, 3\) at rows \[0, 2\], not \(2, rows, 3\) within 4 rows"),
+    ("other-columns", lambda d: d.update(H=np.ones((2, 2, 7)), G=np.ones((2, 2, 7))),
+     r"H has shape \(2, 2, 7\) at rows \[0, 2\], not \(2, rows, 3\)"),
+    ("rows-beyond-grid", lambda d: d.update(rows=(3, 5)),
+     r"H has shape \(2, 2, 3\) at rows \[3, 5\], not .* within 4 rows"),
+    ("rows-negative", lambda d: d.update(rows=(-2, 0)), r"H has shape \(2, 2, 3\) at rows \[-2, 0\]"),
+])
+def test_a_chunk_whose_checksums_hold_but_whose_values_cannot_be_used(tmp_path, name, change, reason):
+    """A chunk written with valid checksums (a hand-edited file, a bug in an older version)
+    whose sums are not finite or do not fit the bake's histograms is traced again, never used."""
+    rd = ResumeDirectory(tmp_path / "p", {"bake": 1}, histogram=(2, 4, 3))
+    rd.save(0, 0, _chunk())
+    assert rd.load(0, 0) is not None
+    data = _chunk()
+    data["H"], data["G"] = data["H"].copy(), data["G"].copy()
+    change(data)
+    rd.save(0, 1, data)
+    with pytest.warns(RuntimeWarning, match=rf"d0000_0001.npz: unusable partial bake chunk \({reason}"):
+        assert rd.load(0, 1) is None
+
+
+def test_an_error_estimate_of_infinity_is_a_usable_chunk(tmp_path):
+    """A direction that no light leaves has an infinite error estimate: its chunk is kept."""
+    rd = ResumeDirectory(tmp_path / "p", {"bake": 1}, histogram=(2, 4, 3))
+    rd.save(0, 0, {**_chunk(), "rel_error": np.inf})
+    assert rd.load(0, 0)["rel_error"] == np.inf
+
+
+def test_a_bake_traces_again_a_chunk_with_nan_sums(tmp_path):
+    """End to end: a resumed bake replaces a NaN chunk of its own key by a fresh trace and the
+    table equals a bake from scratch."""
+    from usdfiber.bake import profiles
+    from usdfiber.bake.baker import bake_table
+    from usdfiber.bake.settings import BakeSettings
+    from usdfiber.table_format import read_table, write_table
+
+    settings = BakeSettings(resolution_deg=30, photons=400, batches=2)
+    reference = bake_table(profiles.circle(), 1.55, 8.0, None, settings, resume_dir=tmp_path / "r")
+    chunk = tmp_path / "r" / "d0001_0000.npz"
+    header, arrays = read_table(chunk, container="usdfiber-bake-chunk")
+    arrays["H"] = np.full_like(arrays["H"], np.nan)
+    write_table(chunk, {k: v for k, v in header.items() if k not in ("arrays", "checksums")}, arrays,
+                container="usdfiber-bake-chunk")
+    with pytest.warns(RuntimeWarning, match="d0001_0000.npz: unusable partial bake chunk"):
+        again = bake_table(profiles.circle(), 1.55, 8.0, None, settings, resume_dir=tmp_path / "r")
+    assert np.all(np.isfinite(again.arrays["p"].astype(np.float32)))
+    np.testing.assert_array_equal(again.arrays["p"], reference.arrays["p"])
+
+
 # ---- cache and disk states ---------------------------------------------------------------------------
 
 def test_tables_being_a_file_fails_before_tracing(tmp_path, request_, monkeypatch):

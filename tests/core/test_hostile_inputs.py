@@ -225,6 +225,64 @@ TABLE_CASES = [
 ]
 
 
+def _crafted(change: Callable[[dict], None], *, compressed: bool = False) -> Callable[[Path], list[str]]:
+    """A small table of the real layout with valid checksums, its arrays changed by ``change``
+    after any compression (a hand-edited file: the container cannot tell)."""
+    from usdfiber.bake.compression import compress_table
+    from usdfiber.bake.grid import Grid
+    from usdfiber.bake.storage import LAYOUT, LAYOUT_VERSION, write_table_file
+    from usdfiber.bake.table import BcsdfTable
+
+    def argv(tmp: Path) -> list[str]:
+        g = Grid(30.0, True, False)
+        lv = np.array([0.0, 1.0, 4.0])
+        dirs, B = (g.n_theta_i, g.n_phi_i), g.n_theta_o - 2
+        shape = (*dirs, len(lv), B, g.n_phi_o)
+        p = np.random.default_rng(0).random(shape).astype(np.float16)
+        arrays = {"p": p, "p_scale": np.ones((*dirs, len(lv)), np.float32), "lbar": np.ones(shape, np.float16),
+                  "band_start": np.ones(dirs, np.int16), "albedo": np.full((*dirs, len(lv)), 0.5, np.float32),
+                  "albedo_lbar": np.ones((*dirs, len(lv)), np.float32), "levels": lv,
+                  "width": np.ones(720, np.float32), "rel_error": np.zeros(dirs, np.float32),
+                  "photons": np.ones(dirs, np.int64)}
+        header = {"layout": {"name": LAYOUT, "version": LAYOUT_VERSION}, "resolution": g.to_header(),
+                  "baked_diameter_um": 1.0, "geometry_key": "", "inputs": {}, "photons": 1, "error_estimate": 0}
+        if compressed:
+            header, arrays = compress_table(BcsdfTable(header=header, arrays=arrays), 0.5)
+        change(arrays)
+        write_table_file(tmp / "t.npz", header, arrays)
+        return ["table", "inspect", str(tmp / "t.npz")]
+    return argv
+
+
+def _set(name: str, value) -> Callable[[dict], None]:
+    def change(arrays: dict) -> None:
+        a = arrays[name].copy()
+        a.flat[0] = value
+        arrays[name] = a
+    return change
+
+
+#: Tables whose checksums hold and whose shapes fit but whose values cannot be used.
+TABLE_CASES += [
+    Case("table-crafted-p-nan", _crafted(_set("p", np.nan)), 2, r"t.npz: not a usable table: array p holds NaN"),
+    Case("table-crafted-p-negative", _crafted(_set("p", -1.0)), 2, r"t.npz: not a usable table: array p holds neg"),
+    Case("table-crafted-p-scale-inf", _crafted(_set("p_scale", np.inf)), 2, r"array p_scale holds NaN or infinite"),
+    Case("table-crafted-lbar-negative", _crafted(_set("lbar", -2.0)), 2, r"array lbar holds negative values"),
+    Case("table-crafted-width-nan", _crafted(_set("width", np.nan)), 2, r"array width holds NaN or infinite"),
+    Case("table-crafted-photons-negative", _crafted(_set("photons", -5)), 2, r"array photons holds negative"),
+    Case("table-crafted-p-integers", _crafted(lambda a: a.update(p=a["p"].astype(np.int32))), 2,
+         r"not a usable table: array p has dtype int32, expected floats"),
+    Case("table-crafted-p-text", _crafted(lambda a: a.update(p=a["p"].astype("U3"))), 2,
+         r"not a usable table: array p has dtype <U3, expected floats"),
+    Case("table-crafted-band-start-floats", _crafted(lambda a: a.update(band_start=a["band_start"] + 0.5)), 2,
+         r"array band_start has dtype float64, expected integers"),
+    Case("table-crafted-width-empty", _crafted(lambda a: a.update(width=np.zeros(0, np.float32))), 2,
+         r"array width has shape \(0,\), expected \(n,\) with n >= 1"),
+    Case("table-crafted-compressed-coef-nan", _crafted(_set("coef", np.nan), compressed=True), 2,
+         r"not a usable table: array coef holds NaN or infinite values"),
+]
+
+
 # ---- curve files ---------------------------------------------------------------------------------
 
 def _bcc(n_curves_header: int = 1, curves: list[tuple[int, list]] | None = None, magic: bytes = b"BCC",
@@ -290,6 +348,11 @@ CURVE_CASES = [
     Case("bcc-bad-root", _import("c.bcc", _bcc(), "--root", "1 bad name"), 2, r"--root must be a valid prim name"),
     Case("bcc-over-budget", _import("c.bcc", _bcc(), "--memory-budget", "100"), 2,
          r"c.bcc: importing a curve file of \d+ bytes .* needs about .*--memory-budget"),
+    Case("bcc-zero-length-curve", _import("c.bcc", _bcc(n_curves_header=2, curves=[
+        (3, [(0, 0, 0), (1, 0, 0), (2, 1, 0)]), (2, [(5, 5, 5)] * 2)])), 0,
+         r"note: curve 1 has all points equal \(zero length; 1 such curve\): it cannot be shaded"),
+    Case("hair-zero-length-strand", _import("h.hair", _hair(pts=[(1, 1, 1)] * 3)), 0,
+         r"note: curve 0 has all points equal \(zero length; 1 such curve\)"),
     Case("hair-truncated-header", _import("h.hair", b"HAIR" + b"\0" * 20), 2, r"truncated header: the file has 24 bytes"),
     Case("hair-zero-strands", _import("h.hair", _hair(strands=0)), 2, r"header says 0 strands; nothing to import"),
     Case("hair-no-points-flag", _import("h.hair", _hair(flags=4)), 2, r"say the file has no points array"),
@@ -411,6 +474,16 @@ CLI_CASES = [
          r"--width: must be a positive number"),
     Case("cli-import-scale-inf", _args("import", "{tmp}/x.bcc", "-o", "{tmp}/o.usda", "--units-per-file-unit", "inf"),
          2, r"--units-per-file-unit: not a finite number"),
+    Case("cli-dye-light-huge", _args("dye", "--match", "0.1,0.1,0.1", "--fiber", "silk", "--no-bake", "--light",
+                                     "1e308,1e308,1e308"), 2,
+         r"light '1e308,1e308,1e308': every channel must be from 1e-06 to 1e\+06 \(got R 1e\+308, G 1e\+308"),
+    Case("cli-dye-light-subnormal", _args("dye", "--match", "0.1,0.1,0.1", "--fiber", "silk", "--no-bake", "--light",
+                                          "1e-320,1,1"), 2,
+         r"every channel must be from 1e-06 to 1e\+06 \(got R 9.99989e-321; a channel without light"),
+    Case("cli-dye-light-1500K", _args("dye", "--match", "0.1,0.1,0.1", "--fiber", "silk", "--no-bake", "--light",
+                                      "1500K"), 2, r"'1500K': every channel must be from 1e-06 to 1e\+06 \(got B 0;"),
+    Case("cli-bake-compress-bound-tiny", _args("bake", "--preset", "silk", "--dry-run", "--compress", "1e-300"), 2,
+         r"--compress: must be in \[0.0001, 1\) \(relative L2 error of p"),
     Case("cli-check-nothing", _args("check"), 2, r"required: STAGE"),
     Case("cli-table-inspect-nothing", _args("table", "inspect"), 2, r"required: FILE"),
 ]

@@ -214,6 +214,25 @@ def test_bad_input_gives_one_line_errors(tmp_path, cache, monkeypatch):
         run_cli([make_stage(tmp_path / "nobake.usda"), "--no-bake", "--cache-dir", str(tmp_path / "empty_cache")])
 
 
+@pytest.mark.parametrize("option, name, expect", [
+    ("-o", "adir.usda", r"adir.usda: -o: is a directory; expected a .usda or .usdc or .usd file"),
+    ("-o", "looks.txt", r"looks.txt: -o: expected a .usda or .usdc or .usd file"),
+    ("-o", "missing/looks.usda", r"looks.usda: -o: cannot write: no directory .*missing"),
+    ("--mtlx", "adir.usda", r"adir.usda: --mtlx: is a directory; expected a .mtlx file"),
+    ("--mtlx", "looks.xml", r"looks.xml: --mtlx: expected a .mtlx file"),
+    ("--mtlx", "missing/looks.mtlx", r"--mtlx: cannot write: no directory"),
+])
+def test_outputs_that_cannot_be_written_are_refused_first(tmp_path, option, name, expect):
+    """One line, before any table is looked up (the cache here is empty: a lookup would fail
+    with another error), never a USD traceback after the fits."""
+    (tmp_path / "adir.usda").mkdir()
+    path = make_stage(tmp_path / "cloth.usda")
+    argv = [path, option, str(tmp_path / name), "--no-bake", "--cache-dir", str(tmp_path / "empty_cache")]
+    with pytest.raises(UsageError, match=expect) as exc:
+        run_cli(argv)
+    assert "\n" not in str(exc.value)
+
+
 def test_invalid_document_is_refused(cache):
     import MaterialX as mx
     doc = mx.createDocument()

@@ -9,7 +9,8 @@ light) for Storm, and binds it to the curves. Running again updates the same pri
 Without ``-o`` the stage's root layer is edited in place (it must be writable). With
 ``-o OUT`` the stage is left alone and OUT is written as a layer that sublayers it and holds
 only the materials, bindings and colours (open OUT to see both). ``--mtlx FILE`` also writes
-the looks as a standalone MaterialX document. Every MaterialX document is validated with
+the looks as a standalone MaterialX document. OUT (.usda, .usdc or .usd) and FILE (.mtlx) are
+checked before any table is looked up. Every MaterialX document is validated with
 MaterialX's ``validate()``.
 
 Tables missing from the cache (``--cache-dir``, else ``$USDFIBER_CACHE_DIR``, else
@@ -55,8 +56,23 @@ def _writable(path: Path) -> bool:
     return os.access(path, os.W_OK) and os.access(path.parent if str(path.parent) else Path("."), os.W_OK)
 
 
+def _output_problem(path: Path, suffixes: tuple[str, ...]) -> str | None:
+    """Why ``path`` cannot be written as a file of one of ``suffixes`` (None when it can):
+    checked before any table is fitted, so that a bad path costs nothing."""
+    if path.is_dir():
+        return f"is a directory; expected a {' or '.join(suffixes)} file"
+    if path.suffix.lower() not in suffixes:
+        return f"expected a {' or '.join(suffixes)} file"
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        return f"cannot write: no directory {parent}"
+    if path.exists() and not _writable(path) or not path.exists() and not os.access(parent, os.W_OK):
+        return "cannot write (read-only file or directory)"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    from pxr import Sdf, Usd
+    from pxr import Sdf, Tf, Usd
 
     from usdfiber.bcsdf import TableCache
     from usdfiber.cli import UsageError
@@ -81,12 +97,14 @@ def run(args: argparse.Namespace) -> int:
         settings = functools.partial(MATERIAL_BAKE_SETTINGS, resolution_deg=args.bake_resolution,
                                      photons=args.bake_photons)
 
+    for name, value, suffixes in (("-o", args.output, (".usda", ".usdc", ".usd")), ("--mtlx", args.mtlx, (".mtlx",))):
+        problem = value and _output_problem(Path(value), suffixes)
+        if problem:
+            raise UsageError(f"{value}: {name}: {problem}")
     if args.output:
         out = Path(args.output)
         if out.resolve() == src.resolve():
             raise UsageError(f"{out}: -o names the stage itself; leave -o out to edit it in place")
-        if out.exists() and not _writable(out) or not out.exists() and not os.access(out.parent.resolve(), os.W_OK):
-            raise UsageError(f"{out}: cannot write (read-only file or directory)")
         layer = Sdf.Layer.FindOrOpen(str(out)) if out.exists() else None
         if layer is None:
             layer = Sdf.Layer.CreateNew(str(out))
@@ -118,9 +136,16 @@ def run(args: argparse.Namespace) -> int:
         looks = [(Path(p).name, samples[0][1]) for p, samples in report.looks.items()]
         try:
             mtlx_path = write_document(look_document(looks), args.mtlx)
-        except (DocumentError, OSError) as exc:
+        except DocumentError as exc:
             raise UsageError(f"{args.mtlx}: {exc}") from None
-    stage.GetEditTarget().GetLayer().Save()
+        except OSError as exc:
+            raise UsageError(f"{args.mtlx}: cannot write: {exc.strerror or exc}") from None
+    try:
+        stage.GetEditTarget().GetLayer().Save()
+    except Tf.ErrorException as exc:   # a disk that filled up, a file replaced by a directory meanwhile
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        reason = lines[-1].split(" : ", 1)[-1].strip("'") if lines else "USD could not save the layer"
+        raise UsageError(f"{target}: cannot write: {reason}") from None
     for path, samples in report.looks.items():
         lk = samples[0][1]
         print(f"{path}: {lk.kind}, colour {', '.join(f'{c:.4f}' for c in lk.colour)} (linear Rec.709), "

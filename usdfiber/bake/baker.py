@@ -260,7 +260,7 @@ def bake_table(profile: Any, eta: float, beta_deg: float,
     try:
         resume = None
         if directory is not None:
-            resume = ResumeDirectory(directory, resume_fingerprint(ctx, profile))
+            resume = ResumeDirectory(directory, resume_fingerprint(ctx, profile), _histogram(ctx))
         return _bake_directions(ctx, profile, resume, progress, header)
     finally:
         if scratch is not None:
@@ -413,6 +413,11 @@ def resume_fingerprint(ctx: BakeContext, profile: Any) -> dict[str, Any]:
             "settings": ctx.settings.result_inputs()}
 
 
+def _histogram(ctx: BakeContext) -> tuple[int, int, int]:
+    """(levels, theta_o rows, phi_o columns) of a direction's histograms in a chunk."""
+    return len(ctx.levels_um), ctx.grid.n_theta_o, ctx.grid.n_phi_o
+
+
 def _request_inputs(request: TableRequest) -> tuple[Any, float, float, tuple[float, float, float] | None]:
     """(profile, eta, beta_deg, cuticle or None) of a request, checked as :func:`bake_table` does."""
     eta, beta_deg = request.eta, request.beta_deg
@@ -442,7 +447,7 @@ def trace_to_chunks(request: TableRequest, settings: BakeSettings, directions: l
     """
     profile, eta, beta_deg, cut = _request_inputs(request)
     ctx = bake_context(profile, eta, beta_deg, cut, settings)
-    resume = ResumeDirectory(chunk_dir, resume_fingerprint(ctx, profile))
+    resume = ResumeDirectory(chunk_dir, resume_fingerprint(ctx, profile), _histogram(ctx))
     todo = [(int(ti), int(pi)) for ti, pi in directions
             if not (resume.has(ti, pi) and resume.load(ti, pi) is not None)]
     group = directions_per_group(settings)

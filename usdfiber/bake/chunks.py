@@ -13,8 +13,9 @@ an interruption loses at most the group in flight. The directory holds:
   per bin and level, :mod:`usdfiber.bake.statistics`) and ``scalars`` (:data:`SCALARS`).
 
 :meth:`ResumeDirectory.load` is the one loader, and it verifies: a chunk that is unreadable,
-damaged, of another bake or of another direction is reported (a RuntimeWarning naming the
-file and the reason) and its direction is traced again.
+damaged, of another bake or of another direction, or whose sums are not finite non-negative
+floats of the bake's histogram size, is reported (a RuntimeWarning naming the file and the
+reason) and its direction is traced again.
 """
 from __future__ import annotations
 
@@ -47,8 +48,12 @@ def chunk_name(ti: int, pi: int) -> str:
 class ResumeDirectory:
     """The chunks of one bake in ``path`` (created; chunks of another bake are removed)."""
 
-    def __init__(self, path: str | os.PathLike[str], fingerprint: Mapping[str, Any]) -> None:
+    def __init__(self, path: str | os.PathLike[str], fingerprint: Mapping[str, Any],
+                 histogram: tuple[int, int, int] | None = None) -> None:
         self.path = Path(path)
+        #: (levels, theta_o rows, phi_o columns) of the bake's histograms, when known: a
+        #: chunk's H and G must fit them.
+        self.histogram = histogram
         text = json.dumps(fingerprint, sort_keys=True)
         #: sha256 of the fingerprint: every chunk names it.
         self.key = hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -104,8 +109,9 @@ class ResumeDirectory:
             rows = tuple(int(x) for x in z["rows"])
             if sc.shape != (len(SCALARS),) or len(rows) != 2:
                 raise ValueError("scalars or rows have the wrong length")
-            if z["H"].shape != z["G"].shape or z["H"].shape[1] != rows[1] - rows[0]:
+            if z["H"].shape != z["G"].shape or z["H"].ndim != 3 or z["H"].shape[1] != rows[1] - rows[0]:
                 raise ValueError("rows and H disagree")
+            self._check_values(rows, z)
         except (table_format.TableError, KeyError, ValueError, IndexError) as exc:
             reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
             warnings.warn(f"{path}: unusable partial bake chunk ({reason}); tracing that direction again",
@@ -115,3 +121,18 @@ class ResumeDirectory:
         for name, value in zip(SCALARS, sc):
             data[name] = int(value) if name in _INTEGER_SCALARS else float(value)
         return data
+
+    def _check_values(self, rows: tuple[int, int], z: Mapping[str, np.ndarray]) -> None:
+        """ValueError where a chunk whose checksums hold cannot be a direction of this bake:
+        histograms of another size, or sums or counts that are NaN, infinite or negative (the
+        error estimate may be infinite: no light left that direction)."""
+        if self.histogram is not None:
+            levels, n_rows, n_cols = self.histogram
+            if not (0 <= rows[0] < rows[1] <= n_rows) or z["H"].shape[::2] != (levels, n_cols):
+                raise ValueError(f"H has shape {z['H'].shape} at rows {list(rows)}, "
+                                 f"not ({levels}, rows, {n_cols}) within {n_rows} rows")
+        for name in ("H", "G", "scalars"):
+            a = z[name]
+            values = np.delete(a, SCALARS.index("rel_error")) if name == "scalars" else a
+            if a.dtype.kind != "f" or not np.all(np.isfinite(values)) or (a.size and np.nanmin(a) < 0):
+                raise ValueError(f"{name} holds values that are not finite non-negative floats")

@@ -79,6 +79,8 @@ LAYOUT_VERSION = 1
 CODEC = "blosc2-zfp-acc"
 #: Default bound on the relative L2 error of p per direction (the issue's 1 %).
 DEFAULT_BOUND = 0.01
+#: The smallest bound accepted: float16 p alone rounds by up to 5e-4 per value.
+MIN_BOUND = 1e-4
 #: Sample absorptions per doubling of s.
 SAMPLES_PER_OCTAVE = 4
 #: How often the codec tolerance of a group is halved before a higher rank is tried.
@@ -331,8 +333,8 @@ def compress_table(table: "BcsdfTable", bound: float = DEFAULT_BOUND, *, rank: i
     """
     import blosc2
 
-    if not (0 < bound < 1):
-        raise CompressionError(f"bound must be in (0, 1), got {bound}")
+    if not (MIN_BOUND <= bound < 1):
+        raise CompressionError(f"bound must be in [{MIN_BOUND:g}, 1), got {bound}")
     if table.compressed:
         raise CompressionError(f"{table.path or 'table'}: is already compressed")
     g = table.grid

@@ -132,6 +132,22 @@ class Recoloured:
         return sample_outgoing(self, theta_i, phi_i, u, psi=psi, interp_i=interp_i)
 
 
+#: Arrays (of either layout) that hold integers; every other array holds floats.
+_INTEGER_ARRAYS = frozenset({"band_start", "photons", "basis_groups", "basis_codec"})
+#: Error estimates, infinite for a direction that no light leaves: reported, never rendered.
+_DIAGNOSTIC_ARRAYS = frozenset({"rel_error", "compression_error"})
+#: Arrays whose values cannot be negative.
+_NON_NEGATIVE_ARRAYS = frozenset({"p", "p_scale", "lbar", "albedo", "width", "rel_error", "photons",
+                                  "compression_error"})
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """Whether every value of ``a`` is finite, a slice at a time (no table-sized mask)."""
+    if a.ndim < 2:
+        return bool(np.all(np.isfinite(a)))
+    return all(bool(np.all(np.isfinite(part))) for part in a)
+
+
 # ---------------------------------------------------------------------------------------------
 # The table
 # ---------------------------------------------------------------------------------------------
@@ -179,9 +195,20 @@ class BcsdfTable:
     def _check_values(self) -> None:
         """Raise ValueError where the values that the layout check (array shapes, grid) does not
         cover are unusable: a NaN, infinite or negative albedo, a baked diameter, index or
-        roughness that is not a finite positive number, absorption levels that are not finite."""
-        if not np.all(np.isfinite(self.arrays["albedo"])) or self.arrays["albedo"].min() < 0:
-            raise ValueError("the albedo holds NaN, Inf or negative values")
+        roughness that is not a finite positive number, absorption levels that are not finite,
+        arrays of the wrong kind of number, floats (error estimates aside) that are NaN or
+        infinite, negative p, p scales, path lengths, albedos, widths, errors or photons."""
+        for name, a in self.arrays.items():
+            kinds = "iu" if name in _INTEGER_ARRAYS else "f"
+            if a.dtype.kind not in kinds:
+                expected = "integers" if kinds == "iu" else "floats"
+                raise ValueError(f"array {name} has dtype {a.dtype}, expected {expected}")
+            if kinds == "f" and name not in _DIAGNOSTIC_ARRAYS and not _all_finite(a):
+                raise ValueError(f"array {name} holds NaN or infinite values")
+            if name in _NON_NEGATIVE_ARRAYS and a.size and a.min() < 0:
+                raise ValueError(f"array {name} holds negative values")
+        if self.arrays["width"].ndim != 1 or self.arrays["width"].size == 0:
+            raise ValueError(f"array width has shape {self.arrays['width'].shape}, expected (n,) with n >= 1")
         if not (0 < self.baked_diameter_um < math.inf):
             raise ValueError(f"baked_diameter_um is {self.header.get('baked_diameter_um')!r}")
         for name in ("eta", "beta_deg"):

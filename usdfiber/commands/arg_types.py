@@ -39,6 +39,17 @@ def positive_float(text: str) -> float:
     return v
 
 
+def compression_bound(text: str) -> float:
+    """A compression bound: the relative L2 error of p, in [MIN_BOUND, 1)."""
+    from usdfiber.bake.compression import MIN_BOUND
+
+    v = finite_float(text)
+    if not MIN_BOUND <= v < 1:
+        raise argparse.ArgumentTypeError(f"must be in [{MIN_BOUND:g}, 1) (relative L2 error of p, e.g. 0.01), "
+                                         f"got {text}")
+    return v
+
+
 def percentage(text: str) -> float:
     """A finite percentage >= 0 (depth of shade)."""
     v = _number(text)

@@ -38,7 +38,8 @@ import sys
 import warnings
 from typing import Any
 
-from usdfiber.commands.arg_types import add_memory_budget_option, positive_float, positive_int, seed
+from usdfiber.commands.arg_types import (add_memory_budget_option, compression_bound, positive_float, positive_int,
+                                         seed)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -100,7 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--long-bake", type=positive_float, default=None, metavar="SECONDS",
                    help="warn before a bake estimated to take longer than this (default 600)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--compress", type=_bound, nargs="?", const=_default_bound(), default=None, metavar="BOUND",
+    p.add_argument("--compress", type=compression_bound, nargs="?", const=_default_bound(), default=None,
+                   metavar="BOUND",
                    help="store the tables compressed, p within BOUND relative L2 per direction "
                         "(default 0.01; usdfiber table compress)")
     p.add_argument("--plot", action="store_true",
@@ -118,14 +120,6 @@ def _default_bound() -> float:
     from usdfiber.bake.compression import DEFAULT_BOUND
 
     return DEFAULT_BOUND
-
-
-def _bound(text: str) -> float:
-    """``--compress``: a relative error in (0, 1)."""
-    v = positive_float(text)
-    if v >= 1:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1) (relative L2 error of p, e.g. 0.01), got {text}")
-    return v
 
 
 def _estimator(text: str) -> tuple[str, ...]:

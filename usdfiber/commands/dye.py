@@ -2,7 +2,8 @@
 
 Finds the dye's extinction per gram (per linear Rec.709 channel, L mg^-1 cm^-1) that gives a
 fiber a target colour at a depth of shade (:mod:`usdfiber.dye_match`): the fiber's radiance
-under a white light of radiance 1 (``--light`` names another: ``6500K`` or ``r,g,b``), seen
+under a white light of radiance 1 (``--light`` names another: ``6500K`` or ``r,g,b``, each channel
+1e-6 to 1e6; a blackbody below about 1950K has no blue and is refused), seen
 perpendicular to the fiber (``--view-theta DEG`` another view, ``--view-theta all`` every
 view, the mean colour of ``usdfiber material``), averaged over rotations and cross-section
 variants. Nothing is traced again: the fiber's table is recoloured.

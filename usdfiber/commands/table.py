@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from usdfiber.commands.arg_types import finite_float
+from usdfiber.commands.arg_types import compression_bound, finite_float
 
 
 #: ``table plot --figure`` choices, and their default light longitudes (degrees).
@@ -86,13 +86,6 @@ def _positive(text: str) -> float:
     v = finite_float(text)
     if v <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
-
-
-def _bound(text: str) -> float:
-    v = finite_float(text)
-    if not 0 < v < 1:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1) (relative L2 error of p, e.g. 0.01), got {text}")
     return v
 
 
@@ -153,7 +146,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="compress every uncompressed table of the table cache in place")
     pc.add_argument("--cache-dir", default=None, metavar="DIR",
                     help="with --cache: the table cache (default $USDFIBER_CACHE_DIR or ~/.cache/usdfiber)")
-    pc.add_argument("--bound", type=_bound, default=DEFAULT_BOUND, metavar="E",
+    pc.add_argument("--bound", type=compression_bound, default=DEFAULT_BOUND, metavar="E",
                     help=f"largest relative L2 error of p per direction (default {DEFAULT_BOUND:g})")
     pc.set_defaults(func=run_compress)
     from usdfiber.cli import one_line_errors
