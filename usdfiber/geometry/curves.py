@@ -48,6 +48,7 @@ __all__ = [
     "too_large_text",
     "unresolved_widths_text",
     "world_points_near_limit",
+    "world_reach",
     "negative_vertex_widths",
     "CurveGeometry",
     "curves_from_prim",
@@ -110,17 +111,26 @@ def too_large(values: np.ndarray) -> np.ndarray:
     return np.flatnonzero(big.reshape(len(values), -1).any(axis=1))
 
 
+def world_reach(points: np.ndarray, m: np.ndarray) -> float:
+    """A bound of the largest coordinate magnitude of ``points`` in world space (``m``: a
+    row-vector local-to-world matrix) from two passes and no copy; NaN when a point is not
+    finite, 0 for no points."""
+    if not points.size:
+        return 0.0
+    m = np.asarray(m, dtype=np.float64)
+    lo, hi = float(points.min()), float(points.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return math.nan
+    return max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
+
+
 def world_points_near_limit(points: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """``points`` in world space (``m``: a row-vector local-to-world matrix) when a cheap bound of
-    their magnitude there reaches :data:`MAX_COORDINATE` (then :func:`too_large` says which are
+    """``points`` in world space (``m``: a row-vector local-to-world matrix) when their
+    :func:`world_reach` reaches :data:`MAX_COORDINATE` (then :func:`too_large` says which are
     beyond), else an empty array: the common case costs two passes and no copy."""
     if points.size:
         m = np.asarray(m, dtype=np.float64)
-        lo, hi = float(points.min()), float(points.max())
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            return np.zeros((0, 3))  # NaN or Inf authored: the finiteness checks'
-        reach = max(abs(lo), abs(hi)) * float(np.abs(m[:3, :3]).sum(axis=0).max()) + float(np.abs(m[3, :3]).max())
-        if reach >= MAX_COORDINATE:
+        if world_reach(points, m) >= MAX_COORDINATE:   # False for NaN: the finiteness checks'
             with np.errstate(over="ignore", invalid="ignore"):
                 world = points.astype(np.float64) @ m[:3, :3] + m[3, :3]
             # Finite points that overflow float64 there are beyond the limit too.

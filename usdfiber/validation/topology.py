@@ -72,9 +72,9 @@ import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from usdfiber.errors import PrimError
-from usdfiber.geometry.curves import (MAX_COORDINATE, TOO_LARGE_EXPECTED, axis_scales, curves_from_prim,
-                                      negative_vertex_widths, too_large, unresolved_widths_text,
-                                      world_points_near_limit)
+from usdfiber.geometry.curves import (MAX_COORDINATE, TOO_LARGE_EXPECTED, WIDTH_PRECISION, axis_scales,
+                                      curves_from_prim, negative_vertex_widths, too_large,
+                                      unresolved_widths_text, world_points_near_limit, world_reach)
 from usdfiber.spec.attributes import Fiber, Yarn
 from usdfiber.stage_io import animated_only
 from usdfiber.spec.yarn import yarn_diameter
@@ -739,11 +739,15 @@ def check_curves_prim(prim: Usd.Prim) -> list[Problem]:
                         f"{where}{_list(big, 'width')} a value of {MAX_COORDINATE:g} or more (e.g. "
                         f"{scaled[big[0]]:g}); {TOO_LARGE_EXPECTED}", t, widths_s)
             elif world is not None and n_points and math.isfinite(wmax) and wmax > 0:
-                with np.errstate(over="ignore", invalid="ignore"):
-                    world_pts = np.asarray(points, dtype=np.float64) @ world[:3, :3] + world[3, :3]
-                thin = unresolved_widths_text(world_pts, scaled) if np.isfinite(world_pts).all() else None
-                if thin:
-                    col.add("WidthBelowPrecision", warn, widths_attr, thin, t, widths_s)
+                # The points in world space only where the bound of their reach allows a width
+                # below the precision there (most prims: two passes over the points, no copy).
+                positive = scaled[scaled > 0]
+                if positive.size and not world_reach(points, world) * WIDTH_PRECISION <= float(positive.min()):
+                    with np.errstate(over="ignore", invalid="ignore"):
+                        world_pts = np.asarray(points, dtype=np.float64) @ world[:3, :3] + world[3, :3]
+                    thin = unresolved_widths_text(world_pts, scaled) if np.isfinite(world_pts).all() else None
+                    if thin:
+                        col.add("WidthBelowPrecision", warn, widths_attr, thin, t, widths_s)
             if not wmin >= 0:
                 neg = np.flatnonzero(widths < 0)
                 if neg.size:
