@@ -192,7 +192,9 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
                                 cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split,
                                 expected=expected, histogram=hist,
                                 expected_allocation=st.expected_allocation,
-                                expected_sampler=st.expected_sampler)
+                                expected_sampler=st.expected_sampler,
+                                spread=[a.spread for a, _ in batch] if ctx.settings.incoming == "box"
+                                and ctx.cuticle is None else None)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:

@@ -86,9 +86,10 @@ class BakeSettings:
     ``band_tail``: mass per direction that may be dropped at the theta_o extremes.
     ``storage``: "float16" or "float32" for the per-bin arrays. ``incoming``: "centre"
     traces each incoming direction at its bin centre (the paper's sampling, for
-    interpolation between nodes); "box" spreads the batches over the incoming bin
-    (stratified, uniform in solid angle, weighted by ``W(phi) cos(theta)``), so that each
-    entry averages over both bins and the table is reciprocal bin for bin. ``estimator``:
+    interpolation between nodes); "box" spreads the light over the incoming bin (each
+    photon its own direction, in proportion to the power the fiber intercepts; with cuticle
+    scales one stratified point per batch), so that each entry averages over both bins and
+    the table is reciprocal bin for bin. ``estimator``:
     the variance-reduction estimators used (names from :data:`ESTIMATORS`; empty: the plain
     estimator, whose tables and cache keys do not mention it).
     """
@@ -253,6 +254,10 @@ class BakeSettings:
             d.pop("expected_allocation")     # uniform: keys of tables baked before it existed
         if "expected" not in self.estimator or self.expected_sampler == "visible":
             d.pop("expected_sampler")        # visible normals: keys of tables baked before "ndf"
+        if self.incoming == "box":
+            # Box bins of extruded fibers draw a light direction per photon (statistics.py),
+            # no longer one per batch: other photons than box tables baked before.
+            d["box_sampling"] = "photon"
         if self.incoming_deg is None:
             d.pop("incoming_deg")  # the paper's grid: keys of tables baked before it existed
         if self.auto_resolution:

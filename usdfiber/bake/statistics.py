@@ -15,6 +15,13 @@ Normalization: an extruded fiber intercepts exactly the photons launched over it
 scales has an uneven surface: ``W`` is the width of the shadow of the scales' outer envelope
 and a photon crossing that envelope's shadow without touching a scale goes straight on,
 which in the far field is scattering into ``omega_o = -omega_i`` (it is counted there).
+A box-filtered bin (``incoming="box"``) of an extruded fiber draws every photon's light
+direction in the bin in proportion to the power the fiber intercepts (the tracer's
+``spread``): a batch is then divided by its photons that met the fiber and weighted by the
+bin's power per unit irradiance and solid angle, ``(1/|I|) integral over I of W cos``
+(:func:`usdfiber.bake.sampling.box_power`). With cuticle scales a batch is one stratified
+point of the bin instead, weighted by ``W(phi) cos(theta)`` there: also unbiased, but the
+variation of p over the bin then counts in the spread between batches.
 Rotationally symmetric tables are mirror-averaged, ``p(phi_o - phi_i) = p(phi_i - phi_o)``
 (:func:`mirror_phi`), which halves the variance.
 """
@@ -28,7 +35,9 @@ from typing import Any
 import numpy as np
 
 from usdfiber.bake.binning import level_sums
+from usdfiber.bake.fiber_mesh import profile_bounds
 from usdfiber.bake.grid import Grid
+from usdfiber.bake.sampling import box_power
 from usdfiber.bake.settings import BakeSettings
 
 __all__ = ["BakeContext", "DirectionStatistics", "level_histograms", "mirror_phi"]
@@ -107,10 +116,33 @@ class DirectionStatistics:
         self.next_batch = int(st.batches)
         self.err = math.inf
 
+    @cached_property
+    def spread(self) -> tuple[float, float, float, float] | None:
+        """The bin (theta_lo, theta_hi, phi_lo, phi_hi) every photon draws its light direction
+        from, for a box-filtered bin of an extruded fiber; otherwise None."""
+        g, ctx = self.ctx.grid, self.ctx
+        if ctx.settings.incoming != "box" or ctx.cuticle is not None:
+            return None
+        h = 0.5 * g.step
+        lo, hi = max(self.theta - h, -0.5 * math.pi), min(self.theta + h, 0.5 * math.pi)
+        if g.phi_invariant:
+            return lo, hi, self.phi, self.phi
+        return lo, hi, self.phi - h, self.phi + h
+
+    @cached_property
+    def box_weight(self) -> float:
+        """Power per unit irradiance and solid angle of the bin of :attr:`spread`."""
+        lo, hi, p0, p1 = self.spread
+        phis = np.linspace(p0, p1, 33) if p1 > p0 else np.array([p0])
+        # W exactly (the extent of the outline across each azimuth), not the table's samples.
+        widths = [np.subtract(*profile_bounds(self.ctx.fs.profile, q)[::-1]) for q in phis]
+        return box_power(lo, hi, np.array(widths))
+
     def sub_direction(self, b: int) -> tuple[float, float]:
-        """The batch's light direction: the node, or a stratified point of its bin ("box")."""
+        """The batch's light direction: the node, or a stratified point of its bin ("box"
+        with cuticle scales; without them each photon draws its own, :attr:`spread`)."""
         g, st = self.ctx.grid, self.ctx.settings
-        if st.incoming != "box":
+        if st.incoming != "box" or self.spread is not None:
             return self.theta, self.phi
         B = int(st.batches)
         if b < B:
@@ -141,7 +173,12 @@ class DirectionStatistics:
         # Each batch weighs as the power its beam carries: photons that met the fiber for a
         # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin.
         box = ctx.settings.incoming == "box"
-        weight = norm if not box else ctx.env_width(ph_b) * math.cos(th_b)
+        if not box:
+            weight = norm
+        elif self.spread is not None:
+            weight = self.box_weight
+        else:
+            weight = ctx.env_width(ph_b) * math.cos(th_b)
         scale = weight / norm if norm > 0 else 0.0
         self.H += scale * h
         self.G += scale * gl

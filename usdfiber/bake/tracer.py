@@ -441,6 +441,8 @@ class _Launch:
     ``-omega_i`` (3), ``u = (cos phi_i, sin phi_i)`` (2), and the launch interval along
     ``u_perp``: its start and width (2), float32 like the kernel. Lane ``l`` belongs to
     direction ``beam[l]`` and is photon ``photon[l]`` of that direction's stream ``mix[l]``.
+    ``spread`` (box-filtered bins, or None) holds per direction the bin each photon draws
+    its own light direction from: (theta_lo, theta_hi, phi_lo, phi_hi), float64.
     """
 
     beams: np.ndarray      # (n_dirs, 7) float32
@@ -450,6 +452,7 @@ class _Launch:
     #: Owen-scramble seeds (n_dirs, 4) uint32 of the per-stream Sobol points that replace the
     #: first random numbers (``sampler="sobol"``), or None for independent PCG32 numbers only.
     scramble: np.ndarray | None = None
+    spread: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -518,6 +521,18 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     rng = mi.PCG32(size=n)
     rng.seed(initstate=mi.UInt64(launch.mix + launch.photon), initseq=mi.UInt64((launch.mix >> np.uint64(1)) + launch.photon))
 
+    if launch.spread is not None:
+        # A box-filtered bin: each photon its own light direction, drawn (before anything
+        # else of its stream) in proportion to the power the fiber intercepts from it
+        # (sampling.cos2_latitude; phi uniform, W(phi) left to the fixed launch width).
+        F64 = mi.Float64
+        box = [dr.gather(F64, F64(np.ascontiguousarray(launch.spread[:, k])), beam) for k in range(4)]
+        u_t, u_p = F64(rng.next_float32()), F64(rng.next_float32())
+        th = sampling.cos2_latitude(box[0], box[1], u_t)
+        ph = box[2] + (box[3] - box[2]) * u_p
+        ct, stn, cp, spn = dr.cos(th), dr.sin(th), dr.cos(ph), dr.sin(ph)
+        d0 = [F(-ct * cp), F(-ct * spn), F(-stn)]
+        ux, uy = F(cp), F(spn)
     qmc = launch.scramble is not None
     if qmc:
         # Scrambled Sobol point of the photon's number in its stream: h, then the first
@@ -1451,6 +1466,7 @@ def trace_many(
     histogram: ExitHistogram | None = None,
     expected_allocation: str = "adaptive",
     expected_sampler: str = "ndf",
+    spread: Sequence[tuple[float, float, float, float] | None] | None = None,
 ) -> list[TraceResult]:
     """Trace several incoming directions ``(theta_i, phi_i)`` (radians) in shared launches.
 
@@ -1460,8 +1476,14 @@ def trace_many(
     photons of all directions are traced ``batch`` lanes at a time, so the fixed cost of a
     launch (its phases run until the slowest photon is done, each recorded and launched
     anew) is paid once per ``batch`` photons rather than once per direction. A result's
-    ``seconds`` is the call's wall time shared out by photon count. Other arguments: see
-    :func:`trace`.
+    ``seconds`` is the call's wall time shared out by photon count. ``spread`` (extruded
+    fibers): per direction a bin ``(theta_lo, theta_hi, phi_lo, phi_hi)`` (radians, holding
+    the direction; phi_lo = phi_hi for one azimuth) from which every photon draws its own
+    light direction, theta with density cos^2(theta) and phi uniform, over one launch
+    interval that covers the fiber's shadow from the whole bin, so that every photon that
+    meets the fiber carries the same power (a box-filtered incoming bin; the result's
+    ``theta_i``, ``phi_i`` stay the given direction, its ``beam_width`` is W at it). Other
+    arguments: see :func:`trace`.
     """
     import time
 
@@ -1503,6 +1525,19 @@ def trace_many(
                          f"got {expected_allocation!r}")
     if expected_sampler not in EXPECTED_SAMPLERS:
         raise ValueError(f"expected_sampler must be one of {', '.join(EXPECTED_SAMPLERS)}, got {expected_sampler!r}")
+    boxes = None
+    if spread is not None:
+        if len(spread) != nd:
+            raise ValueError(f"spread needs one bin per direction ({nd}), got {len(spread)}")
+        if not fs.mesh.z_invariant:
+            raise ValueError("spread needs an extruded fiber (no cuticle scales)")
+        boxes = np.array([(th, th, ph, ph) if sp is None else sp for (th, ph), sp in zip(dirs, spread)],
+                         dtype=np.float64)
+        ok = (np.isfinite(boxes).all(axis=1) & (boxes[:, 0] <= boxes[:, 1]) & (boxes[:, 2] <= boxes[:, 3])
+              & (boxes[:, 0] >= -0.5 * np.pi) & (boxes[:, 1] <= 0.5 * np.pi) & (boxes[:, 3] - boxes[:, 2] < 0.5 * np.pi))
+        if not ok.all():
+            raise ValueError(f"spread {tuple(boxes[~ok][0])} is not a bin (theta_lo <= theta_hi within "
+                             "[-pi/2, pi/2], phi_lo <= phi_hi less than pi/2 apart)")
     if sampler == "sobol" and int(counts.max()) > 1 << 32:
         raise ValueError("sampler 'sobol' numbers at most 2^32 photons per stream")
     # Per direction: -omega_i, u = (cos phi, sin phi), and the launch interval along u_perp.
@@ -1512,6 +1547,11 @@ def trace_many(
     for j, (th, ph) in enumerate(dirs):
         lo, hi = profile_bounds(fs.profile, ph)
         W = _projected_width(fs.profile, ph)
+        if boxes is not None and boxes[j, 3] > boxes[j, 2]:
+            # One interval along every u_perp of the bin: the union of the shadows (sampled
+            # finely; the margin below covers what lies between the samples).
+            b = [profile_bounds(fs.profile, q) for q in np.linspace(boxes[j, 2], boxes[j, 3], 17)]
+            lo, hi = min(x[0] for x in b), max(x[1] for x in b)
         # Margin: the polygon's shadow may differ slightly from W, and scales stick out of the loop.
         margin = 0.01 * W + extra + 1e-3
         lo_l, width = lo - margin, (hi - lo) + 2.0 * margin
@@ -1549,7 +1589,7 @@ def trace_many(
         per = np.minimum(starts[j0 + 1:j1 + 1], b) - np.maximum(starts[j0:j1], a)
         beam = np.repeat(np.arange(j0, j1, dtype=np.uint32), per)
         photon = (np.arange(a, b, dtype=np.int64) - starts[beam]).astype(np.uint64)
-        launch = _Launch(beams32, beam, photon, mixes[beam], scramble)
+        launch = _Launch(beams32, beam, photon, mixes[beam], scramble, boxes)
         out = _trace_batch(fs, launch, eta=float(eta), alpha=alpha, max_bounces=int(max_bounces),
                            max_steps=int(max_steps), mode=mode, split=int(split), expected=expected,
                            histogram=histogram, expected_allocation=expected_allocation,
