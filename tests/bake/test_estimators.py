@@ -263,18 +263,21 @@ def test_reciprocity_is_unbiased_against_plain(shape, ellipse):
     assert v_rec / v_plain < stats.f.isf(FALSE_FAILURE, 3, 3), (v_rec, v_plain)
 
 
-def test_reciprocity_needs_every_direction_and_bounded_memory():
+def test_reciprocity_needs_every_direction_and_bounded_memory(monkeypatch):
     from usdfiber.bake import reciprocity
+    from usdfiber.memory_budget import MemoryBudget
 
     g = Grid(30.0)
     with pytest.raises(BakeError, match="needs every direction"):
         reciprocity.reciprocal_average(g, {}, 100)
+    # The averaging holds one absorption level of every direction: at 1 deg (32400 directions
+    # of 64800 bins) 17 GiB, over a 16 GiB budget; the whole table's 11 levels are not counted.
     big = Grid(1.0)
-    h = np.zeros((11, 1, big.n_phi_o), np.float32)
-    fake = {(ti, pi): {"rows": (0, 1), "H": h} for ti in range(big.n_theta_i) for pi in range(big.n_phi_i)}
-    with pytest.raises(BakeError, match="GiB of memory"):
-        reciprocity.reciprocal_average(big, fake, 100)
+    with pytest.raises(BakeError, match=r"needs about 17 GiB of memory .* budget of 16 GiB \(test\)"):
+        reciprocity.check_memory(big, 11, budget=MemoryBudget(16 << 30, "test"))
+    reciprocity.check_memory(big, 11, budget=MemoryBudget(18 << 30, "test"))
     # A bake says so before tracing anything.
+    monkeypatch.setenv("USDFIBER_MEMORY_BUDGET", "16G")
     with pytest.raises(BakeError, match="GiB of memory"):
         bake_table(profiles.ellipse(0.5, 0.3), ETA, 10.0, None,
                    BakeSettings(resolution_deg=1.0, photons=16, estimator="reciprocity", incoming="box"))

@@ -72,7 +72,7 @@ import numpy as np
 from usdfiber.bake import band_limit
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.chunks import ResumeDirectory, chunk_name
-from usdfiber.bake.reciprocity import check_memory, reciprocal_average
+from usdfiber.bake.reciprocity import ReciprocalAverage, check_memory
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
 from usdfiber.bake.settings import GROUP_PHOTONS, BakeError, BakeSettings, directions_per_group
@@ -208,16 +208,18 @@ def _trace_direction(ctx: BakeContext, ti: int, pi: int) -> dict[str, Any]:
 
 
 def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, float, float] | None,
-                 st: BakeSettings) -> BakeContext:
+                 st: BakeSettings, scratch: str | os.PathLike[str] | None = None) -> BakeContext:
     """The traced scene, grid and absorption levels of one table (inputs already checked:
-    ``cut`` is None or has a height > 0)."""
+    ``cut`` is None or has a height > 0). ``scratch``: the directory where the table will be
+    assembled (the reciprocity averaging's scratch files; its disk is checked), None for work
+    that does not assemble it."""
     from usdfiber.bake import tracer
 
     diameter = float(profile.circumscribed_diameter)
     grid = st.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
     if "reciprocity" in st.estimator:
-        check_memory(grid, len(levels_um))      # before hours of tracing, not after
+        check_memory(grid, len(levels_um), scratch)      # before hours of tracing, not after
     if "split" in st.estimator and cut is not None:
         raise BakeError("estimator 'split' needs a fiber without cuticle scales (the test that light "
                         "leaving through the scales never meets them again is not built)")
@@ -252,7 +254,9 @@ def bake_table(profile: Any, eta: float, beta_deg: float,
     cut = None
     if cuticle is not None and float(cuticle[1]) > 0.0:
         cut = (float(cuticle[0]), float(cuticle[1]), float(cuticle[2]))
-    ctx = bake_context(profile, eta, beta_deg, cut, st)
+    # The table is assembled in the resume directory, else in a temporary one.
+    ctx = bake_context(profile, eta, beta_deg, cut, st,
+                       resume_dir if resume_dir is not None else tempfile.gettempdir())
     grid = ctx.grid
     directory = Path(resume_dir) if resume_dir is not None else None
     scratch = None
@@ -308,10 +312,11 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
     kept: dict[tuple[int, int], dict[str, Any]] = {}
     kept_bytes = 0
 
-    def load_slice(ti: int, pi: int) -> Mapping[str, Any]:
+    def load_slice(ti: int, pi: int, again: bool = True) -> Mapping[str, Any]:
+        """Direction (ti, pi), counted in ``stats`` once; ``again``: it will be read again."""
         nonlocal kept_bytes
         if resume is None:
-            d = in_memory[(ti, pi)]
+            d = in_memory[(ti, pi)] if again else in_memory.pop((ti, pi))
         elif (ti, pi) in kept:
             d = kept.pop((ti, pi))
             kept_bytes -= _chunk_bytes(d)
@@ -320,7 +325,7 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             if d is None:  # unusable: trace it again
                 d = _trace_direction(ctx, ti, pi)
                 resume.save(ti, pi, d)
-            if (ti, pi) not in counted and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
+            if again and (ti, pi) not in counted and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
                 kept[(ti, pi)] = d
                 kept_bytes += _chunk_bytes(d)
         if (ti, pi) not in counted:
@@ -357,15 +362,24 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
                  "machine": {"platform": platform.platform(), "processor": platform.machine(),
                              "cpus": os.cpu_count()}},
     })
+    averager = None
     source: Callable[[int, int], Mapping[str, Any]] = load_slice
-    if "reciprocity" in st.estimator:
-        # Every direction is needed at once: each entry is averaged with its partner's.
-        combined = reciprocal_average(grid, {(ti, pi): load_slice(ti, pi) for ti in range(n_ti)
-                                             for pi in range(n_pi)}, st.photons_per_batch)
-        kept.clear()  # each direction was read once: nothing reads them again
-        source = lambda ti, pi: combined[(ti, pi)]  # noqa: E731
-    table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
-                     band_tail=st.band_tail, storage=st.storage)
+    try:
+        if "reciprocity" in st.estimator:
+            # Each entry is averaged with its partner's: every direction goes in (read once; the
+            # assembly reads the averaged ones), then the averaged ones come out one at a time.
+            averager = ReciprocalAverage(grid, len(ctx.levels_um), st.photons_per_batch,
+                                         resume.path if resume is not None else None)
+            for ti in range(n_ti):
+                for pi in range(n_pi):
+                    averager.add(ti, pi, load_slice(ti, pi, again=False))
+            averager.finish()
+            source = averager.source
+        table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
+                         band_tail=st.band_tail, storage=st.storage)
+    finally:
+        if averager is not None:
+            averager.close()
     table.header["photons"].update({"total": int(stats["photons"]), "hit": int(stats["n_hit"]),
                                     "cut": int(stats["n_cut"])})
     table.header["bake"]["trace_seconds"] = float(stats["seconds"])
@@ -448,7 +462,7 @@ def trace_to_chunks(request: TableRequest, settings: BakeSettings, directions: l
     (directions) and ``photons``.
     """
     profile, eta, beta_deg, cut = _request_inputs(request)
-    ctx = bake_context(profile, eta, beta_deg, cut, settings)
+    ctx = bake_context(profile, eta, beta_deg, cut, settings, chunk_dir)   # the table is assembled there
     resume = ResumeDirectory(chunk_dir, resume_fingerprint(ctx, profile), _histogram(ctx))
     todo = [(int(ti), int(pi)) for ti, pi in directions
             if not (resume.has(ti, pi) and resume.load(ti, pi) is not None)]

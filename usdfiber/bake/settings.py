@@ -15,8 +15,8 @@ from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
 __all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
-           "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError", "BakeSettings", "directions_per_group",
-           "render_bake_settings"]
+           "RECIPROCITY_NODE_BYTES", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
+           "BakeSettings", "directions_per_group", "reciprocity_bytes", "render_bake_settings"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
 BAKER_VERSION = 1
@@ -55,6 +55,19 @@ EXPECTED_SAMPLERS = ("ndf", "visible")
 #: (2^22 events of 84 bytes).
 EXPECTED_HIST_BYTES = 256 << 20
 EXPECTED_QUEUE_BYTES = (1 << 22) * 84
+#: The "reciprocity" estimator's temporaries per entry of the theta_i node being averaged
+#: (partner indices, weights, the averaged H and G; 45-53 bytes measured with tracemalloc):
+#: :func:`reciprocity_bytes`.
+RECIPROCITY_NODE_BYTES = 64
+
+
+def reciprocity_bytes(grid: Grid) -> int:
+    """Peak bytes of the reciprocity averaging of a table of ``grid``
+    (:class:`usdfiber.bake.reciprocity.ReciprocalAverage`), an upper bound: one absorption
+    level of H and G of every direction in float32 (the rest of the table waits on disk),
+    and one theta_i node's temporaries (:data:`RECIPROCITY_NODE_BYTES` per entry)."""
+    bins = grid.n_theta_o * grid.n_phi_o
+    return 2 * 4 * grid.n_theta_i * grid.n_phi_i * bins + RECIPROCITY_NODE_BYTES * grid.n_phi_i * bins
 
 
 class BakeError(ValueError):
@@ -224,7 +237,7 @@ class BakeSettings:
         per-bin arrays ``p`` and ``lbar`` with a full theta_o band (:mod:`usdfiber.bake.storage`),
         the float64 sums of a group of directions in flight (:mod:`usdfiber.bake.statistics`)
         and the tracer's photons (about 2^21 at 64 bytes); with the "reciprocity" estimator,
-        also every direction's histograms in float32, twice (:mod:`usdfiber.bake.reciprocity`);
+        also one absorption level of every direction's histograms (:func:`reciprocity_bytes`);
         with "expected", the tracer's histograms and event queue (:data:`EXPECTED_HIST_BYTES`,
         :data:`EXPECTED_QUEUE_BYTES`)."""
         # (with auto_resolution, resolution_deg is the finest grid the rule chooses)
@@ -233,7 +246,7 @@ class BakeSettings:
         per_direction = K * g.n_theta_o * g.n_phi_o
         item = 2 if self.storage == "float16" else 4
         group = directions_per_group(self)
-        symmetrize = 4 * g.n_theta_i * g.n_phi_i * per_direction * 4 if "reciprocity" in self.estimator else 0
+        symmetrize = reciprocity_bytes(g) if "reciprocity" in self.estimator else 0
         expected = EXPECTED_HIST_BYTES + EXPECTED_QUEUE_BYTES if "expected" in self.estimator else 0
         return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * per_direction * 16
                 + (1 << 21) * 64 + symmetrize + expected)
