@@ -1,0 +1,264 @@
+"""Benchmark: reciprocity averaging on top of the expected value, on full 2 degree tables.
+
+Issue 14 asks for full 2 deg silk and cotton tables at each direction's 16M-photon error 20x
+faster than the plain estimator; the expected value alone reaches 11-14x (bench/REPORT.md,
+section 7). Reciprocity averages every entry of a box-filtered table with its reciprocal
+partner (``usdfiber.bake.reciprocity``); this script measures what it adds on real full
+tables, where every direction has its partners:
+
+``bake``: one full 2 deg box-filtered table of a preset's first variant with the expected
+value (the baker's defaults otherwise), its directions' chunks kept in ``--dir`` (run it
+twice with two seeds: two independent tables of the same variant).
+
+``analyse``: from the chunks of two such bakes A and B, per theta_i row (every phi_i pooled)
+and per direction, the relative L2 error of p (level 0, solid-angle weighted) of each table
+as ``||p_A - p_B||^2 / (2 ||p||^2)``, with and without reciprocity averaging (applied to A and
+B separately). Then the photons each row needs to reach a target error, without averaging
+(each row on its own, error^2 proportional to 1/N) and with it (an entry's variance is
+``a / N`` of its own row, ``a`` estimated per entry from the two tables; the averaged
+entry's variance follows from the weights, which depend on the photon counts only; the rows'
+photon counts are found by a fixed-point iteration that meets every row's target), and the
+ratio of the total photons: reciprocity's gain at every row's target. Targets: each row's
+16M-photon error of the plain estimator from ``bench/results/full_bake_2deg_silk.json``
+(``--targets``), and each row's own error without averaging (equal errors before and after).
+
+    python bench/reciprocity_2deg.py bake --fiber silk --seed 0 --photons 10000 --dir /tmp/box2/silk-a
+    python bench/reciprocity_2deg.py bake --fiber silk --seed 1 --photons 10000 --dir /tmp/box2/silk-b
+    python bench/reciprocity_2deg.py analyse --fiber silk /tmp/box2/silk-a /tmp/box2/silk-b \\
+        --targets bench/results/full_bake_2deg_silk.json --out bench/results/reciprocity_2deg_silk.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bake_common import Record  # noqa: E402
+
+
+def settings(photons: int, seed: int, resolution: float = 2.0) -> Any:
+    from usdfiber.bake.settings import BakeSettings
+
+    return BakeSettings(resolution_deg=resolution, photons=photons, batches=4, seed=seed, incoming="box",
+                        estimator=("expected",))
+
+
+def bake(args: argparse.Namespace) -> None:
+    from usdfiber.bake.baker import bake_request
+    from usdfiber.bake.requests import requests_from_preset
+
+    req = requests_from_preset(args.fiber)[0]
+    st = settings(args.photons, args.seed, args.resolution)
+    c0, w0 = time.process_time(), time.perf_counter()
+    table = bake_request(req, st, resume_dir=args.dir)
+    out = {"fiber": args.fiber, "seed": args.seed, "photons": args.photons, "dir": str(args.dir),
+           "cpu": time.process_time() - c0, "wall": time.perf_counter() - w0,
+           "settings": st.result_inputs(), "error_estimate": table.header["error_estimate"]}
+    Path(args.dir, "result.json").write_text(json.dumps(out, indent=1))
+    print(json.dumps(out, indent=1))
+
+
+def load_level0(path: Path) -> tuple[Any, dict, dict[tuple[int, int], dict[str, Any]]]:
+    """The grid, fingerprint and every direction's chunk of a bake, level 0 only."""
+    from usdfiber.bake.chunks import ResumeDirectory
+    from usdfiber.bake.grid import Grid
+
+    fp = json.loads(Path(path, "bake.json").read_text())
+    grid = Grid.from_header(fp["grid"])
+    rd = ResumeDirectory(path, fp)
+    out = {}
+    for ti in range(grid.n_theta_i):
+        for pi in range(grid.n_phi_i):
+            d = rd.load(ti, pi)
+            if d is None:
+                raise SystemExit(f"{path}: direction ({ti}, {pi}) missing or unusable: finish the bake first")
+            d["H"], d["G"] = np.ascontiguousarray(d["H"][:1]), np.ascontiguousarray(d["G"][:1])
+            out[(ti, pi)] = d
+    return grid, fp, out
+
+
+def dense(grid: Any, slices: dict[tuple[int, int], dict[str, Any]]) -> np.ndarray:
+    """Level 0 of every direction's H / batches, (n_theta_i, n_phi_i, bins) float64: each an
+    estimate of S(I, O) / |I| (usdfiber.bake.reciprocity)."""
+    n_r, n_c = grid.n_theta_o, grid.n_phi_o
+    h = np.zeros((grid.n_theta_i, grid.n_phi_i, n_r, n_c))
+    for (ti, pi), d in slices.items():
+        r0, r1 = d["rows"]
+        h[ti, pi, r0:r1] = d["H"][0] / d["batches"]
+    return h.reshape(grid.n_theta_i, grid.n_phi_i, -1)
+
+
+def rel_error2(a: np.ndarray, b: np.ndarray, dom: np.ndarray) -> np.ndarray:
+    """Per direction: the relative L2 error^2 of p of one of two independent estimates,
+    ||p_a - p_b||^2 / (2 ||p||^2), p each direction's histogram normalized, solid-angle weighted."""
+    pa = a / np.maximum(a.sum(-1, keepdims=True), 1e-300) / dom
+    pb = b / np.maximum(b.sum(-1, keepdims=True), 1e-300) / dom
+    m = 0.5 * (pa + pb)
+    return (dom * (pa - pb) ** 2).sum(-1) / (2.0 * (dom * m * m).sum(-1))
+
+
+def averaged(grid: Any, slices: dict[tuple[int, int], dict[str, Any]], per_batch: int) -> dict:
+    """The baker's reciprocity averaging of one table's slices (level 0)."""
+    from usdfiber.bake.reciprocity import reciprocal_average
+
+    return reciprocal_average(grid, slices, per_batch)
+
+
+def analyse(args: argparse.Namespace) -> None:
+    from usdfiber.bake.reciprocity import _incoming_measure, node_partners
+
+    rec = Record("reciprocity_2deg", args)
+    t0 = time.perf_counter()
+    grid, fp, A = load_level0(args.a)
+    _, fp_b, B = load_level0(args.b)
+    if fp["grid"] != fp_b["grid"] or fp["profile"] != fp_b["profile"]:
+        raise SystemExit("the two bakes are not of one table")
+    per_batch = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
+    for tab in (A, B):
+        for d in tab.values():
+            d["batches"] = max(1, round(d["photons"] / per_batch))
+    n_ti, n_pi = grid.n_theta_i, grid.n_phi_i
+    dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
+    hA, hB = dense(grid, A), dense(grid, B)
+    e2_plain = rel_error2(hA, hB, dom)
+    # The baker's own averaging, applied to each table: its measured error.
+    t1 = time.perf_counter()
+    rA, rB = averaged(grid, A, per_batch), averaged(grid, B, per_batch)
+    t_avg = (time.perf_counter() - t1) / 2
+    for tab in (rA, rB):
+        for k, d in tab.items():
+            d["batches"] = A[k]["batches"]
+    e2_rec = rel_error2(dense(grid, rA), dense(grid, rB), dom)
+    del rA, rB
+
+    # The model: an entry's estimate h (S / |I|) has variance a / N of its row's photons N;
+    # a per entry from the two tables (one degree of freedom each, summed over a row's
+    # entries). Averaging with partner P: lam h_I + (1 - lam) (|P| / |I|) h_P, lam = c_P / (c_I
+    # + c_P), c = |I| wbar / N (the baker's weights: photon counts only).
+    N0 = np.array([[0.5 * (A[(ti, pi)]["n_hit"] + A[(ti, pi)]["misses"] + B[(ti, pi)]["n_hit"]
+                           + B[(ti, pi)]["misses"]) for pi in range(n_pi)] for ti in range(n_ti)])
+    wbar = np.array([[A[(ti, pi)]["norm"] / A[(ti, pi)]["batches"] for pi in range(n_pi)] for ti in range(n_ti)])
+    meas = np.broadcast_to(_incoming_measure(grid)[:, None], (n_ti, n_pi))
+    a = (N0[..., None] * 0.5 * (hA - hB) ** 2).astype(np.float32)
+    hbar = 0.5 * (hA + hB)
+    norm2 = (hbar ** 2 / dom).sum(-1)            # ||h||^2 in the metric of p (per direction)
+    del hA, hB
+    a = a / dom.astype(np.float32)               # the metric's weight 1 / dOmega per bin
+    parts = [node_partners(grid, ti) for ti in range(n_ti)]
+
+    def errors(f: np.ndarray, recip: bool) -> np.ndarray:
+        """Per direction, the modelled relative error^2 with f x N0 photons."""
+        N = N0 * f
+        if not recip:
+            return (a.sum(-1) / N) / norm2
+        c = meas * wbar / N
+        out = np.empty((n_ti, n_pi))
+        for ti in range(n_ti):
+            shape = (n_pi, grid.n_theta_o, grid.n_phi_o)
+            pt, pp, pr, pc = (np.broadcast_to(x, shape).reshape(n_pi, -1) for x in parts[ti])
+            cI, cP = c[ti][:, None], c[pt, pp]
+            lam = cP / (cI + cP)
+            self_pair = (pt == ti) & (pp == np.arange(n_pi)[:, None]) & (
+                pr * grid.n_phi_o + pc == np.arange(dom.size)[None, :])
+            lam = np.where(self_pair, 1.0, lam)
+            s = meas[pt, pp] / meas[ti][:, None]
+            aP = a[pt, pp, pr * grid.n_phi_o + pc] * (dom[pr * grid.n_phi_o + pc] / dom[None, :])
+            # aP is the partner's variance (in its own bin's metric, undone above) seen in this bin.
+            v = lam ** 2 * a[ti] / N[ti][:, None] + (1 - lam) ** 2 * s ** 2 * aP / N[pt, pp]
+            out[ti] = v.sum(-1) / norm2[ti]
+        return out
+
+    model_plain = errors(np.ones((n_ti, n_pi)), False)
+    model_rec = errors(np.ones((n_ti, n_pi)), True)
+
+    def rows(x: np.ndarray) -> np.ndarray:
+        return x.mean(axis=1)
+
+    def allocate(target_rows: np.ndarray, recip: bool) -> tuple[np.ndarray, float]:
+        """Photons per row (a multiple of N0) at which every row's mean error^2 meets its
+        target: fixed-point iteration, each row scaled by its error / target."""
+        f = np.ones(n_ti)
+        for _ in range(args.iterations):
+            e = rows(errors(np.broadcast_to(f[:, None], (n_ti, n_pi)), recip))
+            f = f * e / target_rows
+        e = rows(errors(np.broadcast_to(f[:, None], (n_ti, n_pi)), recip))
+        return f, float(np.max(np.abs(e / target_rows - 1.0)))
+
+    result: dict[str, Any] = {
+        "table": {"fiber": args.fiber, "grid": fp["grid"], "settings": fp["settings"],
+                  "directions": int(n_ti * n_pi)},
+        "averaging_seconds_level0": t_avg,
+        "rows": [],
+    }
+    photons_row = N0.mean(axis=1)
+    targets: dict[str, np.ndarray] = {"own": rows(model_plain)}
+    if args.targets:
+        plain = json.loads(Path(args.targets).read_text())["results"]["rows"]
+        e16 = np.array([r["e16"] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
+        if len(e16) == n_ti:
+            targets["e16"] = e16
+        else:
+            print(f"--targets has {len(e16)} rows, the tables {n_ti}: its targets are left out", file=sys.stderr)
+    result["allocation"] = {}
+    for name, T in targets.items():
+        f_plain, res_plain = allocate(T, False)
+        f_rec, res_rec = allocate(T, True)
+        cost_plain, cost_rec = float((f_plain * photons_row).sum()), float((f_rec * photons_row).sum())
+        result["allocation"][name] = {
+            "photons_per_direction_plain": (f_plain * photons_row).tolist(),
+            "photons_per_direction_reciprocity": (f_rec * photons_row).tolist(),
+            "residual_plain": res_plain, "residual_reciprocity": res_rec,
+            "gain": cost_plain / cost_rec}
+    for ti in range(n_ti):
+        result["rows"].append({
+            "row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])),
+            "error_plain": float(np.sqrt(e2_plain[ti].mean())), "error_reciprocity": float(np.sqrt(e2_rec[ti].mean())),
+            "variance_ratio_measured": float(e2_plain[ti].mean() / e2_rec[ti].mean()),
+            "variance_ratio_model": float(model_plain[ti].mean() / model_rec[ti].mean()),
+        })
+    vr = e2_plain.mean() / e2_rec.mean()
+    result["summary"] = {
+        "variance_ratio_rms": float(vr),
+        "variance_ratio_rows_min": float(min(r["variance_ratio_measured"] for r in result["rows"])),
+        "variance_ratio_rows_max": float(max(r["variance_ratio_measured"] for r in result["rows"])),
+        "model_against_measured_rms": float((model_plain.mean() / model_rec.mean()) / vr),
+        "gains": {k: v["gain"] for k, v in result["allocation"].items()},
+        "seconds": time.perf_counter() - t0,
+    }
+    print(json.dumps(result["summary"], indent=1))
+    rec.doc["results"] = result
+    rec.finish(args.out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="part", required=True)
+    b = sub.add_parser("bake", help="one full 2 deg box-filtered table, chunks kept")
+    b.add_argument("--fiber", default="silk")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--photons", type=int, default=10_000)
+    b.add_argument("--dir", type=Path, required=True)
+    b.add_argument("--resolution", type=float, default=2.0, help="deg (2: the paper's; coarser for a smoke run)")
+    an = sub.add_parser("analyse", help="two bakes' errors with and without reciprocity, and the gain")
+    an.add_argument("a", type=Path)
+    an.add_argument("b", type=Path)
+    an.add_argument("--fiber", default="silk")
+    an.add_argument("--targets", type=Path, help="full_bake_2deg.py results: each row's 16M-photon error")
+    an.add_argument("--iterations", type=int, default=25)
+    an.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    if args.part == "bake":
+        bake(args)
+    else:
+        analyse(args)
+
+
+if __name__ == "__main__":
+    main()
