@@ -112,7 +112,7 @@ def averaged(grid: Any, slices: dict[tuple[int, int], dict[str, Any]], per_batch
 
 
 def analyse(args: argparse.Namespace) -> None:
-    from usdfiber.bake.reciprocity import _incoming_measure, node_partners
+    from usdfiber.bake.reciprocity import incoming_measure, node_partners
 
     rec = Record("reciprocity_2deg", args)
     t0 = time.perf_counter()
@@ -145,7 +145,7 @@ def analyse(args: argparse.Namespace) -> None:
     N0 = np.array([[0.5 * (A[(ti, pi)]["n_hit"] + A[(ti, pi)]["misses"] + B[(ti, pi)]["n_hit"]
                            + B[(ti, pi)]["misses"]) for pi in range(n_pi)] for ti in range(n_ti)])
     wbar = np.array([[A[(ti, pi)]["norm"] / A[(ti, pi)]["batches"] for pi in range(n_pi)] for ti in range(n_ti)])
-    meas = np.broadcast_to(_incoming_measure(grid)[:, None], (n_ti, n_pi))
+    meas = np.broadcast_to(incoming_measure(grid)[:, None], (n_ti, n_pi))
     a = (N0[..., None] * 0.5 * (hA - hB) ** 2).astype(np.float32)
     hbar = 0.5 * (hA + hB)
     norm2 = (hbar ** 2 / dom).sum(-1)            # ||h||^2 in the metric of p (per direction)
@@ -237,6 +237,49 @@ def analyse(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def box_against_centre(args: argparse.Namespace) -> None:
+    """The expected value's noise and CPU per photon with box bins (each photon its own light
+    direction in the 2 deg bin) against centre nodes: the extrapolations of centre tables'
+    gains carry over to box tables only if these agree."""
+    from usdfiber.bake import tracer
+    from usdfiber.bake.grid import Grid
+    from usdfiber.bake.requests import requests_from_preset
+    from usdfiber.bake.settings import BakeSettings
+
+    rec = Record("reciprocity_2deg box", args)
+    req = requests_from_preset(args.fiber)[0]
+    st = BakeSettings(estimator=("expected",))
+    fs = tracer.prepare(req.profile())
+    g = Grid(2.0)
+    dom = np.repeat(g.solid_angles(), g.n_phi_o)
+    hist = tracer.ExitHistogram.for_grid(g, np.array([0.0]))
+    h = math.radians(1.0)
+    rows = []
+    for t_deg, p_deg in ((1, 25), (41, 115), (71, 205), (87, 335)):
+        t, p = math.radians(t_deg), math.radians(p_deg)
+        out = {"theta_i_deg": t_deg, "phi_i_deg": p_deg}
+        for name, sp in (("centre", None), ("box", (max(0.0, t - h), min(0.5 * math.pi, t + h), p - h, p + h))):
+            c0 = time.process_time()
+            rs = tracer.trace_many(fs, [(t, p)] * args.seeds, args.direction_photons, eta=req.eta,
+                                   beta_deg=req.beta_deg, seed=[1000 + k for k in range(args.seeds)],
+                                   expected=st.expected_normals, histogram=hist, max_bounces=st.max_bounces,
+                                   spread=None if sp is None else [sp] * args.seeds)
+            cpu = time.process_time() - c0
+            from usdfiber.bake.statistics import level_histograms
+            ps = np.stack([level_histograms(r, g, np.array([0.0]))[0][0] / r.n_hit / dom for r in rs])
+            m = ps.mean(0)
+            e2 = float((dom * ps.var(0, ddof=1)).sum() / (dom * m * m).sum())   # one seed's error^2
+            out[name] = {"cpu": cpu, "error_one_seed": math.sqrt(e2),
+                         "variance_x_photons": e2 * args.direction_photons}
+        out["variance_ratio_box_over_centre"] = out["box"]["variance_x_photons"] / out["centre"]["variance_x_photons"]
+        out["cpu_ratio_box_over_centre"] = out["box"]["cpu"] / out["centre"]["cpu"]
+        print(json.dumps(out), flush=True)
+        rows.append(out)
+    rec.doc["results"] = {"fiber": args.fiber, "photons": args.direction_photons, "seeds": args.seeds,
+                          "expected_normals": st.expected_normals, "directions": rows}
+    rec.finish(args.out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -253,9 +296,16 @@ def main() -> None:
     an.add_argument("--targets", type=Path, help="full_bake_2deg.py results: each row's 16M-photon error")
     an.add_argument("--iterations", type=int, default=25)
     an.add_argument("--out", type=Path, required=True)
+    bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
+    bx.add_argument("--fiber", default="silk")
+    bx.add_argument("--direction-photons", type=int, default=1 << 18)
+    bx.add_argument("--seeds", type=int, default=8)
+    bx.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     if args.part == "bake":
         bake(args)
+    elif args.part == "box":
+        box_against_centre(args)
     else:
         analyse(args)
 

@@ -49,7 +49,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
-__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "node_partners", "partner_bins",
+__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "incoming_measure", "node_partners", "partner_bins",
            "reciprocal_average", "scratch_bytes"]
 
 
@@ -138,7 +138,7 @@ def partner_bins(grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return pt, pp, pr, pc
 
 
-def _incoming_measure(grid: Grid) -> np.ndarray:
+def incoming_measure(grid: Grid) -> np.ndarray:
     """|I| of each theta_i node's box (solid angle, the phi width one bin), (n_theta_i,)."""
     th = grid.theta_i_nodes()
     h = 0.5 * grid.step
@@ -257,7 +257,7 @@ class ReciprocalAverage:
         if missing:
             raise BakeError(f"reciprocity averaging needs every direction; {len(missing)} missing "
                             f"(first: theta_i node {missing[0] // n_pi}, phi_i node {missing[0] % n_pi})")
-        meas = np.repeat(_incoming_measure(g), n_pi)
+        meas = np.repeat(incoming_measure(g), n_pi)
         with np.errstate(divide="ignore", invalid="ignore"):
             c = np.where(self._hit > 0, meas * self._wbar / self._hit, np.inf)
         level = (n_ti, n_pi, g.n_theta_o, g.n_phi_o)
