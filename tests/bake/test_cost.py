@@ -186,3 +186,19 @@ def test_bake_command_estimator_option(tmp_path):
     bad = run(*base, "--preset", "polyester", "--estimator", "expected", "--expected-sampler", "ggx",
               "--cache-dir", tmp_path / "c")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "ggx" in bad.stderr, bad.stderr
+
+
+def test_reciprocity_adds_its_averaging_pass(silk_bake):
+    """A box-filtered bake with reciprocity costs the same tracing plus one pass of the table's
+    H and G through the averaging's scratch files (not probed: a measured rate)."""
+    from usdfiber.bake.baker import table_grid
+    from usdfiber.bake.cost import RECIPROCITY_BYTES_PER_SECOND
+    from usdfiber.bake.reciprocity import scratch_bytes
+
+    req, _, _, cache = silk_bake
+    pr = probe(req, SMALL, cache.root)
+    box = BakeSettings(resolution_deg=15, photons=2000, batches=2, incoming="box")
+    rec = BakeSettings(resolution_deg=15, photons=2000, batches=2, incoming="box", estimator="reciprocity")
+    extra = estimate(req, rec, pr).seconds - estimate(req, box, pr).seconds
+    want = scratch_bytes(table_grid(req, rec), len(rec.levels)) / RECIPROCITY_BYTES_PER_SECOND
+    assert extra == pytest.approx(want, rel=1e-9) and want > 0

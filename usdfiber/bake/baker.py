@@ -72,6 +72,7 @@ import numpy as np
 from usdfiber.bake import band_limit
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.chunks import ResumeDirectory, chunk_name
+from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import ReciprocalAverage, check_memory
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
@@ -93,6 +94,7 @@ __all__ = [
     "assemble_from_chunks",
     "profile_fingerprint",
     "resume_fingerprint",
+    "table_grid",
     "table_directions",
     "trace_directions",
     "trace_to_chunks",
@@ -444,10 +446,15 @@ def _request_inputs(request: TableRequest) -> tuple[Any, float, float, tuple[flo
     return request.profile(), eta, beta_deg, request.cuticle_scales
 
 
+def table_grid(request: TableRequest, settings: BakeSettings) -> Grid:
+    """The grid of the table :func:`bake_table` bakes for ``request``."""
+    profile, _, beta_deg, cut = _request_inputs(request)
+    return settings.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
+
+
 def table_directions(request: TableRequest, settings: BakeSettings) -> list[tuple[int, int]]:
     """The incoming directions ``(ti, pi)`` :func:`bake_table` traces for ``request``, in its order."""
-    profile, _, beta_deg, cut = _request_inputs(request)
-    grid = settings.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
+    grid = table_grid(request, settings)
     return [(ti, pi) for ti in range(grid.n_theta_i) for pi in range(grid.n_phi_i)]
 
 

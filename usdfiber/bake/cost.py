@@ -47,10 +47,13 @@ import numpy as np
 
 from usdfiber.bake.settings import BakeSettings, directions_per_group
 
-__all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "PROBE_LAUNCH_PHOTONS", "PROBE_PHOTONS", "BakeEstimate", "Probe",
+__all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "RECIPROCITY_BYTES_PER_SECOND", "PROBE_LAUNCH_PHOTONS", "PROBE_PHOTONS", "BakeEstimate", "Probe",
            "cheaper_hint", "estimate", "estimate_request", "format_seconds", "launch_model", "launch_shape", "probe",
            "total"]
 
+#: Bytes of a table's H and G the reciprocity averaging gets through per second (a full 2 deg
+#: table's 11.5 GB in 100-110 s on 2 cores, bench/REPORT.md section 7): not probed.
+RECIPROCITY_BYTES_PER_SECOND = 100e6
 #: Incoming directions a probe traces (spread over the table's grid).
 PROBE_DIRECTIONS = 4
 #: Most photons per direction a probe traces (the bake's own count when fewer).
@@ -332,7 +335,8 @@ def _fixed_bytes(path: Path) -> float:
 
 def estimate(request: Any, settings: BakeSettings, measured: Probe, key: str = "") -> BakeEstimate:
     """The cost of baking ``request`` with ``settings``, from a probe of its fiber."""
-    from usdfiber.bake.baker import table_directions
+    from usdfiber.bake.baker import table_directions, table_grid
+    from usdfiber.bake.reciprocity import scratch_bytes
 
     n_dirs = len(table_directions(request, settings))
     n_b = settings.photons_per_batch
@@ -353,6 +357,9 @@ def estimate(request: Any, settings: BakeSettings, measured: Probe, key: str = "
     # Every launch costs its fixed time, every photon the probe's rate (module docstring).
     seconds = (launches * measured.launch_fixed_seconds + photons / measured.photons_per_second
                + n_dirs * measured.assembly_seconds)
+    if "reciprocity" in settings.estimator:
+        # The averaging passes the table's H and G through scratch files once more.
+        seconds += scratch_bytes(table_grid(request, settings), len(settings.levels)) / RECIPROCITY_BYTES_PER_SECOND
     disk = measured.fixed_bytes + n_dirs * measured.direction_bytes
     return BakeEstimate(label=request.label, key=key, directions=n_dirs, photons_per_direction=per_dir,
                         photons=photons, launches=launches, seconds=float(seconds), disk_bytes=int(round(disk)),
