@@ -79,7 +79,7 @@ def load_level0(path: Path) -> tuple[Any, dict, dict[tuple[int, int], dict[str, 
             d = rd.load(ti, pi)
             if d is None:
                 raise SystemExit(f"{path}: direction ({ti}, {pi}) missing or unusable: finish the bake first")
-            d["H"], d["G"] = np.ascontiguousarray(d["H"][:1]), np.ascontiguousarray(d["G"][:1])
+            d["H"], d["G"] = d["H"][:1].copy(), d["G"][:1].copy()   # not views: the levels go
             out[(ti, pi)] = d
     return grid, fp, out
 
@@ -88,7 +88,7 @@ def dense(grid: Any, slices: dict[tuple[int, int], dict[str, Any]]) -> np.ndarra
     """Level 0 of every direction's H / batches, (n_theta_i, n_phi_i, bins) float64: each an
     estimate of S(I, O) / |I| (usdfiber.bake.reciprocity)."""
     n_r, n_c = grid.n_theta_o, grid.n_phi_o
-    h = np.zeros((grid.n_theta_i, grid.n_phi_i, n_r, n_c))
+    h = np.zeros((grid.n_theta_i, grid.n_phi_i, n_r, n_c), dtype=np.float32)
     for (ti, pi), d in slices.items():
         r0, r1 = d["rows"]
         h[ti, pi, r0:r1] = d["H"][0] / d["batches"]
@@ -98,10 +98,14 @@ def dense(grid: Any, slices: dict[tuple[int, int], dict[str, Any]]) -> np.ndarra
 def rel_error2(a: np.ndarray, b: np.ndarray, dom: np.ndarray) -> np.ndarray:
     """Per direction: the relative L2 error^2 of p of one of two independent estimates,
     ||p_a - p_b||^2 / (2 ||p||^2), p each direction's histogram normalized, solid-angle weighted."""
-    pa = a / np.maximum(a.sum(-1, keepdims=True), 1e-300) / dom
-    pb = b / np.maximum(b.sum(-1, keepdims=True), 1e-300) / dom
-    m = 0.5 * (pa + pb)
-    return (dom * (pa - pb) ** 2).sum(-1) / (2.0 * (dom * m * m).sum(-1))
+    out = np.empty(a.shape[:-1])
+    for ti in range(a.shape[0]):        # a row at a time: float64 temporaries of one row only
+        x, y = a[ti].astype(np.float64), b[ti].astype(np.float64)
+        pa = x / np.maximum(x.sum(-1, keepdims=True), 1e-300) / dom
+        pb = y / np.maximum(y.sum(-1, keepdims=True), 1e-300) / dom
+        m = 0.5 * (pa + pb)
+        out[ti] = (dom * (pa - pb) ** 2).sum(-1) / (2.0 * (dom * m * m).sum(-1))
+    return out
 
 
 def averaged(grid: Any, slices: dict[tuple[int, int], dict[str, Any]], per_batch: int) -> dict:
@@ -128,29 +132,41 @@ def analyse(args: argparse.Namespace) -> None:
     dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
     hA, hB = dense(grid, A), dense(grid, B)
     e2_plain = rel_error2(hA, hB, dom)
-    # The baker's own averaging, applied to each table: its measured error.
-    t1 = time.perf_counter()
-    rA, rB = averaged(grid, A, per_batch), averaged(grid, B, per_batch)
-    t_avg = (time.perf_counter() - t1) / 2
-    for tab in (rA, rB):
-        for k, d in tab.items():
-            d["batches"] = A[k]["batches"]
-    e2_rec = rel_error2(dense(grid, rA), dense(grid, rB), dom)
-    del rA, rB
-
-    # The model: an entry's estimate h (S / |I|) has variance a / N of its row's photons N;
-    # a per entry from the two tables (one degree of freedom each, summed over a row's
-    # entries). Averaging with partner P: lam h_I + (1 - lam) (|P| / |I|) h_P, lam = c_P / (c_I
-    # + c_P), c = |I| wbar / N (the baker's weights: photon counts only).
+    # The model's inputs (float32, one level of the table each), before the averaged copies.
     N0 = np.array([[0.5 * (A[(ti, pi)]["n_hit"] + A[(ti, pi)]["misses"] + B[(ti, pi)]["n_hit"]
                            + B[(ti, pi)]["misses"]) for pi in range(n_pi)] for ti in range(n_ti)])
     wbar = np.array([[A[(ti, pi)]["norm"] / A[(ti, pi)]["batches"] for pi in range(n_pi)] for ti in range(n_ti)])
-    meas = np.broadcast_to(incoming_measure(grid)[:, None], (n_ti, n_pi))
-    a = (N0[..., None] * 0.5 * (hA - hB) ** 2).astype(np.float32)
-    hbar = 0.5 * (hA + hB)
-    norm2 = (hbar ** 2 / dom).sum(-1)            # ||h||^2 in the metric of p (per direction)
+    dom32 = dom.astype(np.float32)
+    a = np.empty_like(hA)
+    norm2 = np.empty((n_ti, n_pi))
+    for ti in range(n_ti):
+        a[ti] = N0[ti][:, None].astype(np.float32) * 0.5 * (hA[ti] - hB[ti]) ** 2 / dom32
+        hbar = 0.5 * (hA[ti].astype(np.float64) + hB[ti])
+        norm2[ti] = (hbar ** 2 / dom).sum(-1)            # ||h||^2 in the metric of p
     del hA, hB
-    a = a / dom.astype(np.float32)               # the metric's weight 1 / dOmega per bin
+    # The baker's own averaging, applied to each table: its measured error.
+    t1 = time.perf_counter()
+    rA = averaged(grid, A, per_batch)
+    del A
+    rB = averaged(grid, B, per_batch)
+    t_avg = (time.perf_counter() - t1) / 2
+    for tab in (rA, rB):
+        for k, d in tab.items():
+            d["batches"] = B[k]["batches"]
+    del B
+    dA = dense(grid, rA)
+    del rA
+    dB = dense(grid, rB)
+    del rB
+    e2_rec = rel_error2(dA, dB, dom)
+    del dA, dB
+
+    # The model: an entry's estimate h (S / |I|) has variance a / N of its row's photons N;
+    # a per entry from the two tables (one degree of freedom each, summed over a row's
+    # entries; stored over dOmega, the metric's weight). Averaging with partner P: lam h_I +
+    # (1 - lam) (|P| / |I|) h_P, lam = c_P / (c_I + c_P), c = |I| wbar / N (the baker's
+    # weights: photon counts only).
+    meas = np.broadcast_to(incoming_measure(grid)[:, None], (n_ti, n_pi))
     parts = [node_partners(grid, ti) for ti in range(n_ti)]
 
     def errors(f: np.ndarray, recip: bool) -> np.ndarray:
