@@ -43,9 +43,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bake_common import Record  # noqa: E402
 
 
-def settings(photons: int, seed: int, resolution: float = 2.0) -> Any:
+def settings(photons: int, seed: int, resolution: float = 2.0, plain: bool = False) -> Any:
+    """The bakes' settings: box bins with the expected value, or (``plain``) the plain
+    estimator at centre nodes, whose errors give each row's 16M-photon error."""
     from usdfiber.bake.settings import BakeSettings
 
+    if plain:
+        return BakeSettings(resolution_deg=resolution, photons=photons, batches=4, seed=seed)
     return BakeSettings(resolution_deg=resolution, photons=photons, batches=4, seed=seed, incoming="box",
                         estimator=("expected",))
 
@@ -55,9 +59,10 @@ def bake(args: argparse.Namespace) -> None:
     from usdfiber.bake.requests import requests_from_preset
 
     req = requests_from_preset(args.fiber)[0]
-    st = settings(args.photons, args.seed, args.resolution)
+    st = settings(args.photons, args.seed, args.resolution, args.plain)
     c0, w0 = time.process_time(), time.perf_counter()
     table = bake_request(req, st, resume_dir=args.dir)
+    table.save(Path(args.dir, "table.npz"))
     out = {"fiber": args.fiber, "seed": args.seed, "photons": args.photons, "dir": str(args.dir),
            "cpu": time.process_time() - c0, "wall": time.perf_counter() - w0,
            "settings": st.result_inputs(), "error_estimate": table.header["error_estimate"]}
@@ -218,6 +223,15 @@ def analyse(args: argparse.Namespace) -> None:
     if args.targets:
         plain = json.loads(Path(args.targets).read_text())["results"]["rows"]
         e16 = np.array([r["e16"] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
+    if args.plain_table:
+        from usdfiber.bake.table import BcsdfTable
+
+        pt = BcsdfTable.load(args.plain_table)
+        rel = np.asarray(pt.arrays["rel_error"], dtype=np.float64).reshape(n_ti, -1)
+        ph = np.asarray(pt.arrays["photons"], dtype=np.float64).reshape(n_ti, -1)
+        # A row's noise constant mean(e^2) x N (every phi_i pooled), at 16M photons.
+        e16 = (rel ** 2 * ph).mean(axis=1) / 16e6
+    if args.targets or args.plain_table:
         if len(e16) == n_ti:
             targets["e16"] = e16
         else:
@@ -232,6 +246,13 @@ def analyse(args: argparse.Namespace) -> None:
             "photons_per_direction_reciprocity": (f_rec * photons_row).tolist(),
             "residual_plain": res_plain, "residual_reciprocity": res_rec,
             "gain": cost_plain / cost_rec}
+        if args.rates:
+            bakes = json.loads(Path(args.rates).read_text())["results"]["bakes"]
+            ev = [x for x in bakes if x["fiber"] == args.fiber and x["variant"] == "adaptive@32"]
+            rate = ev[0]["photons"] * ev[0]["directions"] / ev[0]["wall"]
+            result["allocation"][name].update({
+                "rate_photons_per_second": rate, "rate_source": str(args.rates),
+                "hours_plain": cost_plain * n_pi / rate / 3600, "hours_reciprocity": cost_rec * n_pi / rate / 3600})
     for ti in range(n_ti):
         result["rows"].append({
             "row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])),
@@ -305,11 +326,16 @@ def main() -> None:
     b.add_argument("--photons", type=int, default=10_000)
     b.add_argument("--dir", type=Path, required=True)
     b.add_argument("--resolution", type=float, default=2.0, help="deg (2: the paper's; coarser for a smoke run)")
+    b.add_argument("--plain", action="store_true", help="the plain estimator at centre nodes (the targets' table)")
     an = sub.add_parser("analyse", help="two bakes' errors with and without reciprocity, and the gain")
     an.add_argument("a", type=Path)
     an.add_argument("b", type=Path)
     an.add_argument("--fiber", default="silk")
     an.add_argument("--targets", type=Path, help="full_bake_2deg.py results: each row's 16M-photon error")
+    an.add_argument("--plain-table", type=Path, help="a full plain 2 deg table (bake --plain): each row's "
+                    "16M-photon error from its batch spread, instead of --targets")
+    an.add_argument("--rates", type=Path, help="bake_estimator_bakes.py results with the fiber's adaptive@32 "
+                    "bake: hours at its photon rate")
     an.add_argument("--iterations", type=int, default=25)
     an.add_argument("--out", type=Path, required=True)
     bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
