@@ -282,6 +282,7 @@ def box_against_centre(args: argparse.Namespace) -> None:
     from usdfiber.bake.grid import Grid
     from usdfiber.bake.requests import requests_from_preset
     from usdfiber.bake.settings import BakeSettings
+    from usdfiber.bake.statistics import level_histograms
 
     rec = Record("reciprocity_2deg box", args)
     req = requests_from_preset(args.fiber)[0]
@@ -302,7 +303,6 @@ def box_against_centre(args: argparse.Namespace) -> None:
                                    expected=st.expected_normals, histogram=hist, max_bounces=st.max_bounces,
                                    spread=None if sp is None else [sp] * args.seeds)
             cpu = time.process_time() - c0
-            from usdfiber.bake.statistics import level_histograms
             ps = np.stack([level_histograms(r, g, np.array([0.0]))[0][0] / r.n_hit / dom for r in rs])
             m = ps.mean(0)
             e2 = float((dom * ps.var(0, ddof=1)).sum() / (dom * m * m).sum())   # one seed's error^2
