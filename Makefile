@@ -23,7 +23,7 @@ MC_TESTS ?= tests/mitsuba/test_integrator.py tests/mitsuba/test_fiber_bsdf.py te
 	tests/bake/test_reference_tracer.py tests/bake/test_table.py tests/mitsuba/test_yarn_far_field.py \
 	tests/mitsuba/test_hair_comparison.py tests/mitsuba/test_lod_bound.py tests/mitsuba/test_translate_lights.py \
 	tests/bake/test_recolour.py tests/bake/test_expected_estimator.py tests/bake/test_estimators.py \
-	tests/bake/test_incoming_grid.py tests/core/test_dye_match.py tests/fit/test_silk_loss.py \
+	tests/bake/test_incoming_grid.py tests/bake/test_box_incoming.py tests/bake/test_reciprocity.py tests/core/test_dye_match.py tests/fit/test_silk_loss.py \
 	tests/geometry/test_volume_voxelize.py tests/geometry/test_yarns.py tests/mitsuba/test_compressed_render.py \
 	tests/mitsuba/test_far_field_cost.py tests/mitsuba/test_khungurn_bsdf.py tests/mitsuba/test_model_render.py \
 	tests/mitsuba/test_volume_agreement.py tests/mitsuba/test_volume_phase.py
