@@ -121,7 +121,7 @@ def averaged(grid: Any, slices: dict[tuple[int, int], dict[str, Any]], per_batch
 
 
 def analyse(args: argparse.Namespace) -> None:
-    from usdfiber.bake.reciprocity import incoming_measure, node_partners
+    from usdfiber.bake.reciprocity import incoming_measure, node_weights
 
     rec = Record("reciprocity_2deg", args)
     t0 = time.perf_counter()
@@ -172,27 +172,22 @@ def analyse(args: argparse.Namespace) -> None:
     # (1 - lam) (|P| / |I|) h_P, lam = c_P / (c_I + c_P), c = |I| wbar / N (the baker's
     # weights: photon counts only).
     meas = np.broadcast_to(incoming_measure(grid)[:, None], (n_ti, n_pi))
-    parts = [node_partners(grid, ti) for ti in range(n_ti)]
 
     def errors(f: np.ndarray, recip: bool) -> np.ndarray:
         """Per direction, the modelled relative error^2 with f x N0 photons."""
         N = N0 * f
         if not recip:
             return (a.sum(-1) / N) / norm2
-        c = meas * wbar / N
+        c = (meas * wbar / N).ravel()
         out = np.empty((n_ti, n_pi))
         for ti in range(n_ti):
-            shape = (n_pi, grid.n_theta_o, grid.n_phi_o)
-            pt, pp, pr, pc = (np.broadcast_to(x, shape).reshape(n_pi, -1) for x in parts[ti])
-            cI, cP = c[ti][:, None], c[pt, pp]
-            lam = cP / (cI + cP)
-            self_pair = (pt == ti) & (pp == np.arange(n_pi)[:, None]) & (
-                pr * grid.n_phi_o + pc == np.arange(dom.size)[None, :])
-            lam = np.where(self_pair, 1.0, lam)
-            s = meas[pt, pp] / meas[ti][:, None]
-            aP = a[pt, pp, pr * grid.n_phi_o + pc] * (dom[pr * grid.n_phi_o + pc] / dom[None, :])
-            # aP is the partner's variance (in its own bin's metric, undone above) seen in this bin.
-            v = lam ** 2 * a[ti] / N[ti][:, None] + (1 - lam) ** 2 * s ** 2 * aP / N[pt, pp]
+            # The baker's own weights (usdfiber.bake.reciprocity.node_weights).
+            flat, lam = (x.reshape(n_pi, -1) for x in node_weights(grid, ti, c))
+            part, q = np.divmod(flat, dom.size)                  # partner direction and bin
+            s = meas.ravel()[part] / meas[ti][:, None]
+            # The partner's variance, in its own bin's metric (undone here), seen in this bin.
+            aP = a.reshape(-1)[flat] * (dom[q] / dom[None, :])
+            v = lam ** 2 * a[ti] / N[ti][:, None] + (1 - lam) ** 2 * s ** 2 * aP / N.ravel()[part]
             out[ti] = v.sum(-1) / norm2[ti]
         return out
 

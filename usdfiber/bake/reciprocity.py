@@ -49,7 +49,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
-__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "incoming_measure", "node_partners", "partner_bins",
+__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "incoming_measure", "node_partners", "node_weights", "partner_bins",
            "reciprocal_average", "scratch_bytes"]
 
 
@@ -136,6 +136,25 @@ def partner_bins(grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     nodes = [node_partners(grid, ti) for ti in range(grid.n_theta_i)]
     pt, pp, pr, pc = (np.stack([np.broadcast_to(p[j], shape) for p in nodes]) for j in range(4))
     return pt, pp, pr, pc
+
+
+def node_weights(grid: Grid, ti: int, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The averaging of theta_i node ``ti``'s entries (n_phi_i, n_theta_o, n_phi_o): the flat
+    index of each entry's partner in one level of the table laid out (theta_i, phi_i,
+    theta_o, phi_o), and the weight lam of the entry's own estimate (the partner's gets
+    1 - lam). ``c``: per direction (flat (theta_i, phi_i)) the Poisson constant |I| wbar / N
+    of the module docstring, infinite where no photon met the fiber. lam = c_P / (c_I + c_P)
+    (inverse variances); an entry that is its own partner keeps its estimate (lam = 1)."""
+    n_pi, n_r, n_c = grid.n_phi_i, grid.n_theta_o, grid.n_phi_o
+    pt, pp, pr, pc = node_partners(grid, ti)
+    part = pt * n_pi + pp                                       # the partner's direction
+    flat = np.broadcast_to((part * n_r + pr) * n_c + pc, (n_pi, n_r, n_c))
+    own = ti * n_pi + np.arange(n_pi)
+    self_pair = flat == (own[:, None, None] * n_r + np.arange(n_r)[:, None]) * n_c + np.arange(n_c)
+    cI, cQ = c[own][:, None, None], c[part]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.where(np.isfinite(cQ), cQ / (cI + cQ), 1.0)
+    return flat, np.where(self_pair, 1.0, lam)
 
 
 def incoming_measure(grid: Grid) -> np.ndarray:
@@ -275,16 +294,9 @@ class ReciprocalAverage:
         """Level ``k`` of theta_i node ``ti``'s directions averaged, written to the files
         (``H``, ``G``: level ``k`` of every direction, as added)."""
         g = self.grid
-        n_pi, n_r, n_c = g.n_phi_i, g.n_theta_o, g.n_phi_o
-        pt, pp, pr, pc = node_partners(g, ti)
-        part = pt * n_pi + pp                                       # the partner's direction
-        flat = np.broadcast_to((part * n_r + pr) * n_c + pc, (n_pi, n_r, n_c))
-        own = ti * n_pi + np.arange(n_pi)
-        self_pair = flat == (own[:, None, None] * n_r + np.arange(n_r)[:, None]) * n_c + np.arange(n_c)
-        cI, cQ = c[own][:, None, None], c[part]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = np.where(np.isfinite(cQ), cQ / (cI + cQ), 1.0)
-        lam = np.where(self_pair, 1.0, lam)
+        flat, lam = node_weights(g, ti, c)
+        part = flat // (g.n_theta_o * g.n_phi_o)                    # the partner's direction
+        own = ti * g.n_phi_i + np.arange(g.n_phi_i)
         # The partner's H estimates S / |P| per batch sum: rescale it to this node's |I| / B_I.
         B = self._batches
         scale = (meas[part] * B[own][:, None, None]) / (meas[own][:, None, None] * B[part])
