@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from usdfiber.bake import profiles, tracer
-from usdfiber.bake.fiber_mesh import profile_bounds
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.sampling import box_power, cos2_latitude
 from usdfiber.bake.statistics import level_histograms
@@ -57,12 +56,12 @@ def test_cos2_latitude_in_the_kernel_matches_numpy():
 def test_box_power_is_the_bin_integral():
     prof = profiles.ellipse(0.5, 0.3).centered().scaled_to_diameter(1.0)
     t0, t1, p0, p1 = math.radians(50), math.radians(70), math.radians(20), math.radians(40)
-    widths = [np.subtract(*profile_bounds(prof, q)[::-1]) for q in np.linspace(p0, p1, 33)]
-    ours = box_power(t0, t1, np.array(widths))
+    widths = prof.projected_width(np.linspace(p0, p1, 33))
+    ours = box_power(t0, t1, widths)
     # Brute force: midpoint rule in (theta, phi), solid angle cos(theta) dtheta dphi.
     th = t0 + (np.arange(2000) + 0.5) * (t1 - t0) / 2000
     ph = p0 + (np.arange(400) + 0.5) * (p1 - p0) / 400
-    w = np.array([np.subtract(*profile_bounds(prof, q)[::-1]) for q in ph])
+    w = prof.projected_width(ph)
     num = (w[None, :] * (np.cos(th) ** 2)[:, None]).sum()
     den = (np.cos(th)[:, None] * np.ones_like(w)[None, :]).sum()
     assert ours == pytest.approx(num / den, rel=1e-5)
@@ -81,8 +80,8 @@ def test_photons_spread_over_the_bin_estimate_its_average():
     fs = tracer.prepare(prof)
     grid, beta = Grid(6.0), 10.0
     t0, t1, p0, p1 = math.radians(50), math.radians(70), math.radians(20), math.radians(40)
-    widths = [np.subtract(*profile_bounds(prof, q)[::-1]) for q in np.linspace(p0, p1, 33)]
-    power = box_power(t0, t1, np.array(widths))
+    widths = prof.projected_width(np.linspace(p0, p1, 33))
+    power = box_power(t0, t1, widths)
     levels = np.array([0.0, 0.5])
 
     def hist(r, weight):
@@ -105,7 +104,7 @@ def test_photons_spread_over_the_bin_estimate_its_average():
         ph = p0 + u[:, 1] * (p1 - p0)
         rs = tracer.trace_many(fs, list(zip(th, ph)), 1024, eta=ETA, beta_deg=beta,
                                seed=[1000 * k + j for j in range(64)])
-        points.append(np.mean([hist(r, np.subtract(*profile_bounds(prof, q)[::-1]) * math.cos(t))
+        points.append(np.mean([hist(r, float(prof.projected_width(q)) * math.cos(t))
                                for r, t, q in zip(rs, th, ph)], axis=0))
     c = compare_blocks(spread, points, block=1)
     assert c.agrees(), c

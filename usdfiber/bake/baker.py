@@ -184,6 +184,7 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
             break
         batch = [(a, a.queue.pop(0)) for a in todo]
         subs = [a.sub_direction(b) for a, b in batch]
+        spreads = [a.spread for a, _ in batch]        # box bins whose photons draw their own direction
         if st.estimator:
             # Estimators other than the plain one need independent directions.
             seeds = [stream_seed(st.seed, b, *node[id(a)]) for a, b in batch]
@@ -195,8 +196,7 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
                                 expected=expected, histogram=hist,
                                 expected_allocation=st.expected_allocation,
                                 expected_sampler=st.expected_sampler,
-                                spread=[a.spread for a, _ in batch] if ctx.settings.incoming == "box"
-                                and ctx.cuticle is None else None)
+                                spread=spreads if any(sp is not None for sp in spreads) else None)
         for (a, _), (th_b, ph_b), r in zip(batch, subs, res):
             a.add(r, th_b, ph_b)
             if not a.queue:

@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from usdfiber.bake.binning import level_sums
-from usdfiber.bake.fiber_mesh import profile_bounds
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.sampling import box_power
 from usdfiber.bake.settings import BakeSettings
@@ -134,9 +133,8 @@ class DirectionStatistics:
         """Power per unit irradiance and solid angle of the bin of :attr:`spread`."""
         lo, hi, p0, p1 = self.spread
         phis = np.linspace(p0, p1, 33) if p1 > p0 else np.array([p0])
-        # W exactly (the extent of the outline across each azimuth), not the table's samples.
-        widths = [np.subtract(*profile_bounds(self.ctx.fs.profile, q)[::-1]) for q in phis]
-        return box_power(lo, hi, np.array(widths))
+        # W exactly (the profile's shadow at each azimuth), not the table's samples of it.
+        return box_power(lo, hi, self.ctx.fs.profile.projected_width(phis))
 
     def sub_direction(self, b: int) -> tuple[float, float]:
         """The batch's light direction: the node, or a stratified point of its bin ("box"
