@@ -54,18 +54,57 @@ def settings(photons: int, seed: int, resolution: float = 2.0, plain: bool = Fal
                         estimator=("expected",))
 
 
+def schedule(path: Path, chunks: Path, per_batch: int) -> tuple[list[int], dict[str, Any]]:
+    """Photons per direction of each theta_i row from an ``analyse`` result (its allocation at
+    each row's 16M-photon error, with averaging): the allocation counts photons that met the
+    fiber, as multiples of the analysed bake's; ``chunks``, that bake's directory, gives its
+    photons launched and met per row. Rounded up to whole batches of ``per_batch``."""
+    from usdfiber.bake.chunks import ResumeDirectory
+    from usdfiber.bake.grid import Grid
+
+    res = json.loads(Path(path).read_text())["results"]
+    alloc = np.asarray(res["allocation"]["e16"]["photons_per_direction_reciprocity"], dtype=np.float64)
+    fp = json.loads(Path(chunks, "bake.json").read_text())
+    grid = Grid.from_header(fp["grid"])
+    if grid.n_theta_i != len(alloc):
+        raise SystemExit(f"{path} has {len(alloc)} rows, the bake in {chunks} {grid.n_theta_i}")
+    rd = ResumeDirectory(chunks, fp)
+    met, launched = np.zeros(grid.n_theta_i), np.zeros(grid.n_theta_i)
+    for ti in range(grid.n_theta_i):
+        for pi in range(grid.n_phi_i):
+            d = rd.load(ti, pi)
+            if d is None:
+                raise SystemExit(f"{chunks}: direction ({ti}, {pi}) missing")
+            met[ti] += d["n_hit"] + d["misses"]
+            launched[ti] += d["photons"]
+    rows = [int(math.ceil(a * l / m / per_batch)) * per_batch for a, m, l in zip(alloc, met, launched)]
+    return rows, {"analysis": str(path), "chunks": str(chunks), "met_per_launched": (met / launched).tolist(),
+                  "allocated_met": alloc.tolist()}
+
+
 def bake(args: argparse.Namespace) -> None:
+    from dataclasses import replace
+
     from usdfiber.bake.baker import bake_request
     from usdfiber.bake.requests import requests_from_preset
 
     req = requests_from_preset(args.fiber)[0]
     st = settings(args.photons, args.seed, args.resolution, args.plain)
+    plan = None
+    if args.schedule:
+        # The photons each row needs at its 16M-photon error with averaging, in whole batches
+        # of the baker's size (the tracer's launches then hold about GROUP_PHOTONS photons).
+        rows, plan = schedule(args.schedule, args.schedule_chunks, args.per_batch)
+        st = replace(st, photons=args.per_batch * st.batches, row_photons=tuple(rows),
+                     estimator=("expected", "reciprocity"))
     c0, w0 = time.process_time(), time.perf_counter()
     table = bake_request(req, st, resume_dir=args.dir)
     table.save(Path(args.dir, "table.npz"))
     out = {"fiber": args.fiber, "seed": args.seed, "photons": args.photons, "dir": str(args.dir),
            "cpu": time.process_time() - c0, "wall": time.perf_counter() - w0,
-           "settings": st.result_inputs(), "error_estimate": table.header["error_estimate"]}
+           "settings": st.result_inputs(), "error_estimate": table.header["error_estimate"],
+           "header_bake": table.header["bake"], "photons_total": table.header["photons"]["total"],
+           "schedule": plan}
     Path(args.dir, "result.json").write_text(json.dumps(out, indent=1))
     print(json.dumps(out, indent=1))
 
@@ -322,6 +361,10 @@ def main() -> None:
     b.add_argument("--dir", type=Path, required=True)
     b.add_argument("--resolution", type=float, default=2.0, help="deg (2: the paper's; coarser for a smoke run)")
     b.add_argument("--plain", action="store_true", help="the plain estimator at centre nodes (the targets' table)")
+    b.add_argument("--schedule", type=Path, help="an analyse result: bake each row at its 16M-photon error with "
+                   "the expected value and reciprocity averaging (the end-to-end bake)")
+    b.add_argument("--schedule-chunks", type=Path, help="the directory of one of the bakes that result analysed")
+    b.add_argument("--per-batch", type=int, default=16384, help="photons per batch with --schedule")
     an = sub.add_parser("analyse", help="two bakes' errors with and without reciprocity, and the gain")
     an.add_argument("a", type=Path)
     an.add_argument("b", type=Path)

@@ -219,6 +219,7 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
 
     diameter = float(profile.circumscribed_diameter)
     grid = st.grid_for(beta_deg, is_rotationally_symmetric(profile), cut is not None)
+    st.check_rows(grid)
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
     if "reciprocity" in st.estimator:
         check_memory(grid, len(levels_um), scratch)      # before hours of tracing, not after

@@ -7,6 +7,7 @@ version and the built-in profiles' resolution) enter the cache key through
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -134,6 +135,7 @@ class BakeSettings:
     #: How the "expected" estimator draws its normals: one of :data:`EXPECTED_SAMPLERS` (in the
     #: cache key only with it, and only when "ndf": tables of visible normals keep earlier keys).
     expected_sampler: str = "ndf"
+    row_photons: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         # Canonical types (10 and 10.0, NumPy integers): equal settings have equal cache keys.
@@ -212,6 +214,20 @@ class BakeSettings:
         if "expected" in est and "split" in est:
             raise BakeError("estimators 'expected' and 'split' cannot be combined (both replace the exits "
                             "through the outer surface)")
+        if self.row_photons is not None:
+            rows = self.row_photons
+            if isinstance(rows, (str, bytes)) or not hasattr(rows, "__len__") or not 1 <= len(rows) <= 4096:
+                raise BakeError(f"row_photons must be a list of photons per theta_i row, got {rows!r}")
+            canon = []
+            for n in rows:
+                if isinstance(n, bool) or not isinstance(n, numbers.Real) or not math.isfinite(n) or int(n) != n \
+                        or not 1 <= int(n) <= MAX_PHOTONS:
+                    raise BakeError(f"row_photons must hold integers from 1 to {MAX_PHOTONS:.0e}, got {n!r}")
+                canon.append(int(n))
+            if self.target_error is not None or auto:
+                # Both choose the photons or the rows themselves.
+                raise BakeError("row_photons cannot be combined with a target error or resolution 'auto'")
+            object.__setattr__(self, "row_photons", tuple(canon))
         if self.incoming == "box" and (auto or self.incoming_deg is not None):
             # A box node spreads its light over one outgoing bin's solid angle, not a coarser cell.
             raise BakeError("incoming='box' needs incoming nodes as far apart as the bins (no "
@@ -231,6 +247,19 @@ class BakeSettings:
     def photons_per_batch(self) -> int:
         """Photons of one batch of one direction (``photons / batches``, rounded up)."""
         return max(1, int(math.ceil(int(self.photons) / int(self.batches))))
+
+    def row_batches(self, ti: int) -> int:
+        """Batches a direction of theta_i row ``ti`` is first given: ``batches``, or with
+        ``row_photons`` the row's photons in whole batches (at least ``batches``)."""
+        if self.row_photons is None:
+            return int(self.batches)
+        return max(int(self.batches), int(math.ceil(self.row_photons[ti] / self.photons_per_batch)))
+
+    def check_rows(self, grid: Grid) -> None:
+        """Refuse a ``row_photons`` schedule that is not one entry per theta_i row of ``grid``."""
+        if self.row_photons is not None and len(self.row_photons) != grid.n_theta_i:
+            raise BakeError(f"row_photons has {len(self.row_photons)} rows; the table's grid has "
+                            f"{grid.n_theta_i} theta_i rows")
 
     def table_bytes(self) -> int:
         """Peak bytes of baking one table with these settings, an upper bound: the assembled
@@ -279,6 +308,10 @@ class BakeSettings:
             d.pop("auto_resolution")  # the paper's grid: keys of tables baked before it existed
         if self.target_error is None:
             d.pop("max_photons")  # only used in target-error mode
+        if self.row_photons is None:
+            d.pop("row_photons")  # no schedule: keys of tables baked before it existed
+        else:
+            d["row_photons"] = list(self.row_photons)
         d["builtin_profile_vertices"] = BUILTIN_PROFILE_VERTICES
         d["baker_version"] = BAKER_VERSION
         return d

@@ -111,8 +111,8 @@ class DirectionStatistics:
         self.strata = (self.rng.permutation(int(st.batches)), self.rng.permutation(int(st.batches)))
         self.stats = {"n_hit": 0, "n_cut": 0, "launched": 0, "leaks": 0, "misses": 0.0}
         self.seconds = 0.0
-        self.queue = list(range(int(st.batches)))   # batches still to trace
-        self.next_batch = int(st.batches)
+        self.next_batch = st.row_batches(ti)
+        self.queue = list(range(self.next_batch))   # batches still to trace
         self.err = math.inf
 
     @cached_property
