@@ -308,6 +308,81 @@ def analyse(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def averaged_pair(a: Path, b: Path, fp: dict, cache: Path | None) -> tuple[np.ndarray, np.ndarray]:
+    """Level 0 of bakes ``a`` and ``b``, each averaged as the baker averages (dense, float32);
+    kept in ``cache`` (an .npz, with the two bakes' fingerprints) when given."""
+    key = json.dumps([json.loads(Path(p, "bake.json").read_text()) for p in (a, b)], sort_keys=True)
+    if cache is not None and Path(cache).exists():
+        with np.load(cache) as z:
+            if str(z["key"]) == key:
+                return z["a"], z["b"]
+    pair = []
+    for path in (a, b):
+        grid, fp2, T = load_level0(path)
+        if fp2["grid"] != fp["grid"] or fp2["profile"] != fp["profile"]:
+            raise SystemExit(f"{path} is not a bake of the same table")
+        pb = int(fp2["settings"]["photons"]) // int(fp2["settings"]["batches"])
+        for d in T.values():
+            d["batches"] = max(1, round(d["photons"] / pb))
+        pair.append(dense(grid, averaged(grid, T, pb)))
+        del T
+    if cache is not None:
+        np.savez(cache, a=pair[0], b=pair[1], key=np.array(key))
+    return pair[0], pair[1]
+
+
+def end_to_end(args: argparse.Namespace) -> None:
+    """The error of a scheduled bake (``bake --schedule``) per row against its 16M-photon
+    target, from two independent tables A and B at fewer photons (the analysed pair): with
+    every table averaged as the baker averages it and d_XY the relative L2 error^2 between
+    tables X and Y, the new table's own is ``(d_NA + d_NB - d_AB) / 2`` (noise independent
+    between the three bakes; the same box bins and estimators, so the same expectation)."""
+    if args.pair_only:
+        averaged_pair(args.a, args.b, json.loads(Path(args.a, "bake.json").read_text()), args.pair_cache)
+        return
+    if args.out is None:
+        raise SystemExit("end-to-end needs --out")
+    rec = Record("reciprocity_2deg_end_to_end", args)
+    res = json.loads(Path(args.bake, "result.json").read_text())
+    grid, fp, N = load_level0(args.bake)
+    out_rows = []
+    per_batch_n = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
+    for d in N.values():
+        d["batches"] = max(1, round(d["photons"] / per_batch_n))
+    dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
+    hN = dense(grid, averaged(grid, N, per_batch_n))
+    photons = np.array([[N[(ti, pi)]["photons"] for pi in range(grid.n_phi_i)] for ti in range(grid.n_theta_i)])
+    del N
+    # (the unaveraged batch spread of each direction, the baker's own error estimate, for reference)
+    for path in (args.a, args.b):
+        other = json.loads(Path(path, "bake.json").read_text())
+        if other["grid"] != fp["grid"] or other["profile"] != fp["profile"]:
+            raise SystemExit(f"{path} is not a bake of the same table as {args.bake}")
+    hA, hB = averaged_pair(args.a, args.b, fp, args.pair_cache)
+    d_na, d_nb, d_ab = (2 * rel_error2(x, y, dom) for x, y in ((hN, hA), (hN, hB), (hA, hB)))
+    e2 = 0.5 * (d_na + d_nb - d_ab)
+    plain = json.loads(Path(args.targets).read_text())["results"]["rows"]
+    e16 = np.array([r["e16"] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
+    for ti in range(grid.n_theta_i):
+        out_rows.append({"row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])),
+                         "photons_per_direction": float(photons[ti].mean()),
+                         "error": float(np.sqrt(max(e2[ti].mean(), 0.0))), "target_16m": float(np.sqrt(e16[ti])),
+                         "error_over_target": float(np.sqrt(max(e2[ti].mean(), 0.0) / e16[ti])),
+                         "error_pair": float(np.sqrt(d_ab[ti].mean() / 2))})
+    ratio = np.array([r["error_over_target"] for r in out_rows])
+    hb = res["header_bake"]
+    summary = {
+        "wall_seconds": res["wall"], "cpu_seconds": res["cpu"], "trace_seconds": hb["trace_seconds"],
+        "photons_total": res["photons_total"], "directions": int(grid.n_theta_i * grid.n_phi_i),
+        "error_over_target_rms": float(np.sqrt(np.mean(ratio ** 2))), "error_over_target_max": float(ratio.max()),
+        "error_over_target_min": float(ratio.min()), "rows_over_target": int((ratio > 1).sum()),
+        "table_error_rms": float(np.sqrt(e2.mean())), "target_rms": float(np.sqrt(e16.mean())),
+    }
+    print(json.dumps(summary, indent=1))
+    rec.doc["results"] = {"bake": res, "rows": out_rows, "summary": summary}
+    rec.finish(args.out)
+
+
 def box_against_centre(args: argparse.Namespace) -> None:
     """The expected value's noise and CPU per photon with box bins (each photon its own light
     direction in the 2 deg bin) against centre nodes: the extrapolations of centre tables'
@@ -376,6 +451,14 @@ def main() -> None:
                     "bake: hours at its photon rate")
     an.add_argument("--iterations", type=int, default=25)
     an.add_argument("--out", type=Path, required=True)
+    ee = sub.add_parser("end-to-end", help="a scheduled bake's error per row against its 16M-photon target")
+    ee.add_argument("bake", type=Path, help="the directory of a bake --schedule")
+    ee.add_argument("a", type=Path, help="one of the two bakes the schedule's analysis compared")
+    ee.add_argument("b", type=Path, help="the other")
+    ee.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results: each row's 16M-photon error")
+    ee.add_argument("--out", type=Path, help="required unless --pair-only")
+    ee.add_argument("--pair-cache", type=Path, help="an .npz keeping the averaged pair between runs")
+    ee.add_argument("--pair-only", action="store_true", help="only fill --pair-cache (before the bake ends)")
     bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
     bx.add_argument("--fiber", default="silk")
     bx.add_argument("--direction-photons", type=int, default=1 << 18)
@@ -386,6 +469,8 @@ def main() -> None:
         bake(args)
     elif args.part == "box":
         box_against_centre(args)
+    elif args.part == "end-to-end":
+        end_to_end(args)
     else:
         analyse(args)
 

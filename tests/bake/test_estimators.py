@@ -239,22 +239,29 @@ def _sigma_hat(t) -> np.ndarray:
     return out.reshape(g.n_theta_i * g.n_phi_i, -1)
 
 
-@pytest.mark.parametrize("shape,combined", [pytest.param("ellipse", (), marks=pytest.mark.slow), ("circle", ()),
-                                            ("ellipse", ("expected",))])
-def test_reciprocity_is_unbiased_against_plain(shape, combined, ellipse):
+@pytest.mark.parametrize("shape,combined,scheduled", [pytest.param("ellipse", (), False, marks=pytest.mark.slow),
+                                                      ("circle", (), False), ("circle", (), True),
+                                                      ("ellipse", ("expected",), False)])
+def test_reciprocity_is_unbiased_against_plain(shape, combined, scheduled, ellipse):
     """Entry by entry, 4 independent box-filtered bakes of each (the bakes are the batches):
     ``compare_blocks`` (about F with Satterthwaite dofs, and the z of the total), false failure
     1e-4 per case. A wrong partner or a wrong rescaling between nodes of different theta_i
     (e.g. |P| / |I| left out) shifts the entries far beyond the noise. ``combined``: averaging
     the expected value's tables (against the same plain bakes), as a full 2 deg bake at the
-    paper's error uses it."""
+    paper's error uses it. ``scheduled``: rows of 1x to 4x the photons (``row_photons``), so
+    that partners weigh unequally, as in a bake at each row's error target."""
     prof = ellipse if shape == "ellipse" else profiles.circle()
     res = 30 if shape == "ellipse" else 15
     tabs = {}
     rec = tuple(sorted(combined + ("reciprocity",)))
+    rows = None
+    if scheduled:
+        n_rows = BakeSettings(resolution_deg=res).grid_for(15.0, shape == "circle", False).n_theta_i
+        rows = tuple(8000 * (1 + (3 * i) // (n_rows - 1)) for i in range(n_rows))
     for est, seeds in (((), (0, 1, 2, 3)), (rec, (10, 11, 12, 13))):
         tabs[est] = [_sigma_hat(bake_table(prof, ETA, 15.0, None, BakeSettings(
-            resolution_deg=res, photons=8000, batches=4, seed=s, incoming="box", estimator=est)))[..., None]
+            resolution_deg=res, photons=8000, batches=4, seed=s, incoming="box", estimator=est,
+            row_photons=rows if est else None)))[..., None]
             for s in seeds]
     c = compare_blocks(tabs[()], tabs[rec], block=1)
     assert c.agrees(), c

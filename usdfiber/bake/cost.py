@@ -3,7 +3,7 @@
 A bake's work is known exactly from its request and settings: the incoming directions of
 the table's grid (:func:`usdfiber.bake.baker.table_directions`), the photons each gets
 (``batches`` launches of ``photons_per_batch``; in target-error mode as many as the error
-needs, up to ``max_photons``), the tracer launches (one per batch of a group of
+needs, up to ``max_photons``; with a row schedule, each row's), the tracer launches (one per batch of a group of
 :func:`~usdfiber.bake.settings.directions_per_group` directions). What it costs per photon
 depends on the fiber and on this machine, so a quick **probe** measures it
 (:func:`probe`) with the baker's own code. A launch of N photons takes ``a + N / rate``
@@ -23,7 +23,7 @@ which stands for the others), grid, photons and machine under the cache root
 (``probes/<key>.json``); a damaged or foreign file is probed again.
 
 Accuracy: the direction count, photons and launches of an estimate are exact for a bake of
-fixed photons (``tests/bake/test_cost.py`` checks them against a real bake, with the size
+fixed photons or a row schedule (``tests/bake/test_cost.py`` checks them against a real bake, with the size
 on disk); the time is a model, measured against real bakes in ``bench/REPORT.md``
 ("Cost estimates"). Peak memory is
 :meth:`usdfiber.bake.settings.BakeSettings.table_bytes`, an upper bound.
@@ -104,7 +104,8 @@ class Probe:
 @dataclass(frozen=True)
 class BakeEstimate:
     """The estimated cost of baking one table: ``directions`` incoming directions of
-    ``photons_per_direction`` photons (``photons`` in all) in ``launches`` tracer launches,
+    ``photons_per_direction`` photons (the mean with a row schedule; ``photons`` in all) in
+    ``launches`` tracer launches,
     ``seconds`` of wall time on this machine, ``disk_bytes`` on disk, at most ``peak_bytes``
     of memory. ``exact``: whether the photons are known exactly (fixed photons) or predicted
     from the probe's error (target-error mode)."""
@@ -198,8 +199,10 @@ def probe(request: Any, settings: BakeSettings, root: str | os.PathLike[str] | N
     or read the measurement kept under the cache ``root`` (None: measure, keep nothing)."""
     from usdfiber.bake.requests import TableRequest
 
-    # Variant 0 stands for every variant of the fiber: one probe per fiber spec.
+    # Variant 0 stands for every variant of the fiber: one probe per fiber spec. A row
+    # schedule changes how many photons, not what one costs: estimate() counts it.
     req0 = TableRequest(request.params, 0, list(request.prims))
+    settings = replace(settings, row_photons=None)
     n = _probe_photons(settings)
     key = _probe_key(req0, settings, n)
     path = Path(root) / "probes" / f"{key}.json" if root is not None else None
@@ -349,11 +352,22 @@ def estimate(request: Any, settings: BakeSettings, measured: Probe, key: str = "
         batches = max(B, int(math.ceil(min(need, int(settings.max_photons)) / n_b))) if math.isfinite(need) \
             else int(settings.max_photons) // n_b
         exact = False
-    per_dir = batches * n_b
     group = directions_per_group(settings)
-    full, rest = divmod(n_dirs, group)
-    launches = (full + (1 if rest else 0)) * batches
-    photons = n_dirs * per_dir
+    if settings.row_photons is None:
+        per_dir = batches * n_b
+        full, rest = divmod(n_dirs, group)
+        launches = (full + (1 if rest else 0)) * batches
+        photons = n_dirs * per_dir
+    else:
+        # A schedule: each row's batches; a group of directions takes as many launches as its
+        # direction with the most batches (the baker traces them in grid order).
+        grid = table_grid(request, settings)
+        settings.check_rows(grid)
+        dirs = table_directions(request, settings)
+        nb = [settings.row_batches(ti) for ti, _ in dirs]
+        photons = sum(nb) * n_b
+        per_dir = int(round(photons / max(1, n_dirs)))
+        launches = sum(max(nb[g:g + group]) for g in range(0, len(nb), group))
     # Every launch costs its fixed time, every photon the probe's rate (module docstring).
     seconds = (launches * measured.launch_fixed_seconds + photons / measured.photons_per_second
                + n_dirs * measured.assembly_seconds)

@@ -59,6 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--photons", type=positive_int, default=None, metavar="N",
                    help="photons per incoming direction (default 1000000; with --target-error "
                         "the first amount)")
+    p.add_argument("--row-photons", type=_row_photons, default=None, metavar="N,N,...|FILE.json",
+                   help="photons per incoming direction of each theta_i row of the grid (a schedule that "
+                        "meets each row's error target, e.g. with --estimator expected,reciprocity; "
+                        "rounded up to whole batches of --photons / --batches): numbers separated by "
+                        "commas, or a JSON file holding a list")
     p.add_argument("--target-error", type=positive_float, default=None, metavar="E",
                    help="trace each direction until the relative L2 error of p is below E "
                         "(e.g. 0.01)")
@@ -122,12 +127,55 @@ def _default_bound() -> float:
     return DEFAULT_BOUND
 
 
+def _row_photons(text: str) -> tuple[int, ...]:
+    """``--row-photons``: integers separated by commas, or a JSON file holding a list of them."""
+    import json
+    from pathlib import Path
+
+    if text.strip().lower().endswith(".json"):
+        try:
+            value = json.loads(Path(text).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise argparse.ArgumentTypeError(f"cannot read {text}: {exc}") from None
+        if not isinstance(value, list):
+            raise argparse.ArgumentTypeError(f"{text}: expected a JSON list of photons per theta_i row")
+        items = value
+    else:
+        items = [t.strip() for t in text.split(",")]
+    out = []
+    for item in items:
+        try:
+            whole = isinstance(item, float) and item.is_integer()     # 3.5e5 in JSON
+            n = positive_int(str(int(item)) if whole else str(item))
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"photons per row must be positive integers, got {item!r}") from None
+        out.append(n)
+    return tuple(out)
+
+
 def _estimator(text: str) -> tuple[str, ...]:
     """``--estimator``: names separated by commas (``plain`` alone: none)."""
     names = tuple(n.strip().lower() for n in text.split(",") if n.strip())
     if not names:
         raise argparse.ArgumentTypeError("give an estimator name, e.g. expected")
     return () if names == ("plain",) else names
+
+
+def _refuse_schedule(reqs: list, settings) -> str | None:
+    """A one-line error if ``--row-photons`` does not have one entry per theta_i row of a
+    requested table's grid, before any bake."""
+    from usdfiber.bake.baker import table_grid
+    from usdfiber.bake.settings import BakeError
+
+    if settings.row_photons is None:
+        return None
+    for r in reqs:
+        try:
+            settings.check_rows(table_grid(r, settings))
+        except BakeError as exc:
+            prims = ", ".join(r.prims[:3]) or r.label
+            return f"--row-photons for {r.label} ({prims}): {exc}"
+    return None
 
 
 def _refuse_unsupported_estimators(reqs: list, settings) -> str | None:
@@ -166,6 +214,8 @@ def _settings(args: argparse.Namespace):
         kw["target_error"] = args.target_error
     if args.max_photons is not None:
         kw["max_photons"] = args.max_photons
+    if args.row_photons is not None:
+        kw["row_photons"] = args.row_photons
     if args.batches is not None:
         kw["batches"] = args.batches
     if args.max_bounces is not None:
@@ -353,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
     except StageRefused as exc:
         print(f"usdfiber: error: {exc}", file=sys.stderr)
         return 1
-    refused = _refuse_unsupported_estimators(reqs, settings)
+    refused = _refuse_unsupported_estimators(reqs, settings) or _refuse_schedule(reqs, settings)
     if refused:
         print(f"usdfiber: error: {refused}", file=sys.stderr)
         return 1

@@ -86,8 +86,9 @@ def table_jobs(requests: Iterable[TableRequest], settings: BakeSettings, cache: 
 
 def directions_per_task(settings: BakeSettings, task_photons: int = TASK_PHOTONS) -> int:
     """Directions in one task: about ``task_photons`` photons (with a target error, the first
-    amount per direction is what is known in advance)."""
-    return max(1, int(task_photons) // max(1, int(settings.photons)))
+    amount per direction is what is known in advance; with a row schedule, its largest row)."""
+    per = max([int(settings.photons), *(settings.row_photons or ())])
+    return max(1, int(task_photons) // max(1, per))
 
 
 def plan_tasks(jobs: Sequence[TableJob], task_photons: int = TASK_PHOTONS) -> list[TraceTask]:

@@ -1,0 +1,128 @@
+"""A per-row photon schedule (``BakeSettings.row_photons``): each theta_i row gets its own
+photons in whole batches, the cache key records the schedule, the cost estimate counts it
+exactly, and a schedule that does not fit the table is refused before any tracing."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import usdfiber  # noqa: F401 - registers the schema
+from usdfiber.bake import tracer
+from usdfiber.bake.baker import bake_request, table_grid
+from usdfiber.bake.cost import estimate_request
+from usdfiber.bake.requests import requests_from_preset
+from usdfiber.bake.settings import BakeError, BakeSettings
+
+BASE = BakeSettings(resolution_deg=15, photons=2000, batches=2)     # 1000 photons per batch
+
+
+def _schedule(n_rows: int) -> tuple[int, ...]:
+    # Below one direction's minimum (2 batches), between batches (rounded up), whole batches.
+    pattern = (10, 2500, 6000, 1000)
+    return tuple(pattern[i % len(pattern)] for i in range(n_rows))
+
+
+def test_settings_refuse_bad_schedules():
+    for bad in ("12", [0], [1.5], [float("nan")], [float("inf")], [True], [], [-3], [2e12]):
+        with pytest.raises(BakeError, match="row_photons"):
+            BakeSettings(row_photons=bad)
+    with pytest.raises(BakeError, match="target error"):
+        BakeSettings(row_photons=[1000], target_error=0.05)
+    with pytest.raises(BakeError, match="auto"):
+        BakeSettings(row_photons=[1000], auto_resolution=True)
+
+
+def test_cache_key_records_the_schedule():
+    """Equal schedules in any integer form have one key; another schedule, or none, another;
+    tables without a schedule keep the keys they had."""
+    a = BakeSettings(row_photons=[1000, 2000])
+    b = BakeSettings(row_photons=(np.int64(1000), 2000.0))
+    assert a.result_inputs() == b.result_inputs() and a.row_photons == (1000, 2000)
+    assert a.result_inputs() != BakeSettings(row_photons=[1000, 3000]).result_inputs()
+    assert "row_photons" not in BakeSettings().result_inputs()
+    assert a.result_inputs() != BakeSettings().result_inputs()
+
+
+def test_rows_get_their_photons_in_whole_batches():
+    s = BakeSettings(photons=2000, batches=2, row_photons=[10, 2500, 6000])
+    assert [s.row_batches(i) for i in range(3)] == [2, 3, 6]
+    assert BakeSettings(photons=2000, batches=2).row_batches(5) == 2
+
+
+def test_schedule_of_another_grid_is_refused_before_tracing(monkeypatch):
+    req = requests_from_preset("silk")[0]
+    n_rows = table_grid(req, BASE).n_theta_i
+
+    def no_tracing(*a, **k):
+        raise AssertionError("traced before the schedule was checked")
+
+    monkeypatch.setattr(tracer, "trace_many", no_tracing)
+    from dataclasses import replace
+
+    with pytest.raises(BakeError, match=f"row_photons has {n_rows + 1} rows.*{n_rows} theta_i rows"):
+        bake_request(req, replace(BASE, row_photons=(1000,) * (n_rows + 1)))
+
+
+def test_scheduled_bake_and_its_exact_estimate(tmp_path, monkeypatch):
+    """Every direction of row ``ti`` traces ``row_batches(ti)`` batches; the estimate's photons
+    and tracer launches are those of the real bake (launches counted at the tracer)."""
+    from dataclasses import replace
+
+    req = requests_from_preset("silk")[1]
+    grid = table_grid(req, BASE)
+    st = replace(BASE, row_photons=_schedule(grid.n_theta_i))
+    est = estimate_request(req, st)
+    launches = []
+    real = tracer.trace_many
+
+    def counted(*a, **k):
+        launches.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(tracer, "trace_many", counted)
+    table = bake_request(req, st)
+    photons = np.asarray(table.arrays["photons"]).reshape(grid.n_theta_i, grid.n_phi_i)
+    want = np.array([st.row_batches(ti) * st.photons_per_batch for ti in range(grid.n_theta_i)])
+    assert np.array_equal(photons, np.broadcast_to(want[:, None], photons.shape))
+    assert est.photons == int(table.header["photons"]["total"]) == int(photons.sum())
+    assert est.launches == len(launches)
+    assert est.photons_per_direction == round(photons.mean())
+    assert table.header["bake"]["settings"]["row_photons"] == list(st.row_photons)
+    assert math.isfinite(est.seconds) and est.seconds > 0
+
+
+def _cli(*args):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(repo) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run([sys.executable, "-m", "usdfiber", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=repo, timeout=600)
+
+
+def test_bake_command_row_photons(tmp_path):
+    """``--row-photons`` from a list or a JSON file reaches the estimate; a schedule with
+    another row count than a requested table's grid, or a token that is not a positive
+    integer, is one line before any bake."""
+    base = ["bake", "--preset", "polyester", "--resolution", "30", "--photons", "1000", "--batches", "2",
+            "--dry-run", "--cache-dir", tmp_path / "c"]
+    ok = _cli(*base, "--row-photons", "1000,2000,3000")       # polyester at 30 deg: 3 theta_i rows
+    assert ok.returncode == 0, ok.stderr
+    assert "3 directions x 2,000 photons" in ok.stdout, ok.stdout
+    (tmp_path / "rows.json").write_text("[1000, 2e3, 3000]")
+    same = _cli(*base, "--row-photons", tmp_path / "rows.json")
+    assert same.returncode == 0 and same.stdout.split()[0] == ok.stdout.split()[0], same.stderr  # one key
+    wrong = _cli(*base, "--row-photons", "1000,2000")
+    assert wrong.returncode == 1 and len(wrong.stderr.strip().splitlines()) == 1, wrong.stderr
+    assert "polyester" in wrong.stderr and "2 rows" in wrong.stderr and "3 theta_i rows" in wrong.stderr
+    for bad in ("1000,x,3000", "1000,-5,3000", str(tmp_path / "missing.json")):
+        out = _cli(*base, "--row-photons", bad)
+        assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        assert "--row-photons" in out.stderr
+    assert not list((tmp_path / "c").glob("tables/*.npz"))
