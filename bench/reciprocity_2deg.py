@@ -22,10 +22,35 @@ ratio of the total photons: reciprocity's gain at every row's target. Targets: e
 16M-photon error of the plain estimator from ``bench/results/full_bake_2deg_silk.json``
 (``--targets``), and each row's own error without averaging (equal errors before and after).
 
+``bake --schedule``: the end-to-end bake. The analysis's photons per row at each row's
+16M-photon error with averaging become the baker's row schedule (``BakeSettings.row_photons``,
+converted from photons that met the fiber to photons launched with the analysed bake's own
+ratio per row, rounded up to whole batches of ``--per-batch``), baked with the expected
+value and reciprocity averaging (the product's own path, ``bake_request``). ``--schedule`` may
+also name a computed schedule, a JSON list of photons per row: silk's is
+``bench/results/reciprocity_2deg_schedule_silk.json`` (also ``usdfiber bake --row-photons FILE``).
+
+``rows``: while such a bake runs (its averaging needs every row), each complete row's error
+without averaging against the analysed pair, beside the model's prediction at the row's
+photons, and the averaged error the model's averaging ratio then gives against the target.
+
+``end-to-end``: that table's error per row against its target, from the two analysed bakes
+(each averaged as the baker averages): the new table's error^2 is ``(d_NA + d_NB - d_AB) / 2``
+with ``d_XY`` the squared L2 distance between the p of tables X and Y, over ``||p_N||^2``
+(:func:`three_way_error2`).
+
     python bench/reciprocity_2deg.py bake --fiber silk --seed 0 --photons 10000 --dir /tmp/box2/silk-a
     python bench/reciprocity_2deg.py bake --fiber silk --seed 1 --photons 10000 --dir /tmp/box2/silk-b
     python bench/reciprocity_2deg.py analyse --fiber silk /tmp/box2/silk-a /tmp/box2/silk-b \\
         --targets bench/results/full_bake_2deg_silk.json --out bench/results/reciprocity_2deg_silk.json
+    python bench/reciprocity_2deg.py bake --fiber silk --seed 2 --dir /tmp/e2e/silk \\
+        --schedule bench/results/reciprocity_2deg_silk.json --schedule-chunks /tmp/box2/silk-a
+    # or, the same rows: --schedule bench/results/reciprocity_2deg_schedule_silk.json
+    python bench/reciprocity_2deg.py rows /tmp/e2e/silk /tmp/box2/silk-a /tmp/box2/silk-b \\
+        --analysis bench/results/reciprocity_2deg_silk.json --targets bench/results/full_bake_2deg_silk.json \\
+        --out bench/results/reciprocity_2deg_rows_silk.json
+    python bench/reciprocity_2deg.py end-to-end /tmp/e2e/silk /tmp/box2/silk-a /tmp/box2/silk-b \\
+        --targets bench/results/full_bake_2deg_silk.json --out bench/results/reciprocity_2deg_end_to_end_silk.json
 """
 from __future__ import annotations
 
@@ -94,7 +119,13 @@ def bake(args: argparse.Namespace) -> None:
     if args.schedule:
         # The photons each row needs at its 16M-photon error with averaging, in whole batches
         # of the baker's size (the tracer's launches then hold about GROUP_PHOTONS photons).
-        rows, plan = schedule(args.schedule, args.schedule_chunks, args.per_batch)
+        listed = json.loads(Path(args.schedule).read_text())
+        if isinstance(listed, list):     # a schedule already computed (usdfiber bake --row-photons FILE)
+            rows, plan = [int(n) for n in listed], {"rows": str(args.schedule)}
+        elif args.schedule_chunks is None:
+            raise SystemExit("--schedule with an analyse result needs --schedule-chunks")
+        else:
+            rows, plan = schedule(args.schedule, args.schedule_chunks, args.per_batch)
         st = replace(st, photons=args.per_batch * st.batches, row_photons=tuple(rows),
                      estimator=("expected", "reciprocity"))
     c0, w0 = time.process_time(), time.perf_counter()
@@ -109,8 +140,9 @@ def bake(args: argparse.Namespace) -> None:
     print(json.dumps(out, indent=1))
 
 
-def load_level0(path: Path) -> tuple[Any, dict, dict[tuple[int, int], dict[str, Any]]]:
-    """The grid, fingerprint and every direction's chunk of a bake, level 0 only."""
+def load_level0(path: Path, rows: list[int] | None = None) -> tuple[Any, dict, dict[tuple[int, int], dict[str, Any]]]:
+    """The grid, fingerprint and every direction's chunk of a bake (of ``rows`` only, when
+    given), level 0 only."""
     from usdfiber.bake.chunks import ResumeDirectory
     from usdfiber.bake.grid import Grid
 
@@ -118,7 +150,7 @@ def load_level0(path: Path) -> tuple[Any, dict, dict[tuple[int, int], dict[str, 
     grid = Grid.from_header(fp["grid"])
     rd = ResumeDirectory(path, fp)
     out = {}
-    for ti in range(grid.n_theta_i):
+    for ti in (range(grid.n_theta_i) if rows is None else rows):
         for pi in range(grid.n_phi_i):
             d = rd.load(ti, pi)
             if d is None:
@@ -149,6 +181,22 @@ def rel_error2(a: np.ndarray, b: np.ndarray, dom: np.ndarray) -> np.ndarray:
         pb = y / np.maximum(y.sum(-1, keepdims=True), 1e-300) / dom
         m = 0.5 * (pa + pb)
         out[ti] = (dom * (pa - pb) ** 2).sum(-1) / (2.0 * (dom * m * m).sum(-1))
+    return out
+
+
+def three_way_error2(n: np.ndarray, a: np.ndarray, b: np.ndarray, dom: np.ndarray) -> np.ndarray:
+    """Per direction: the relative L2 error^2 of p in table ``n``, from two tables ``a`` and
+    ``b`` whose noise is independent of it and of each other (same expectation):
+    (||p_n - p_a||^2 + ||p_n - p_b||^2 - ||p_a - p_b||^2) / (2 ||p_n||^2), each p its histogram
+    normalized, solid-angle weighted. One denominator for the three distances: normalizing each
+    pair by its own mean would leave the pair's noise in it and bias the difference by about
+    e_a^2 e_b^2 / 4 (here comparable with e_n^2); ``n``'s own noise biases it by e_n^2, which is negligible."""
+    out = np.empty(n.shape[:-1])
+    for ti in range(n.shape[0]):        # a row at a time: float64 temporaries of one row only
+        pn, pa, pb = (x[ti].astype(np.float64) for x in (n, a, b))
+        pn, pa, pb = (x / np.maximum(x.sum(-1, keepdims=True), 1e-300) / dom for x in (pn, pa, pb))
+        d = ((dom * (pn - pa) ** 2).sum(-1) + (dom * (pn - pb) ** 2).sum(-1) - (dom * (pa - pb) ** 2).sum(-1))
+        out[ti] = d / (2.0 * (dom * pn * pn).sum(-1))
     return out
 
 
@@ -334,9 +382,9 @@ def averaged_pair(a: Path, b: Path, fp: dict, cache: Path | None) -> tuple[np.nd
 def end_to_end(args: argparse.Namespace) -> None:
     """The error of a scheduled bake (``bake --schedule``) per row against its 16M-photon
     target, from two independent tables A and B at fewer photons (the analysed pair): with
-    every table averaged as the baker averages it and d_XY the relative L2 error^2 between
-    tables X and Y, the new table's own is ``(d_NA + d_NB - d_AB) / 2`` (noise independent
-    between the three bakes; the same box bins and estimators, so the same expectation)."""
+    every table averaged as the baker averages it, the new table's relative L2 error^2 per
+    direction is :func:`three_way_error2` (noise independent between the three bakes; the same
+    box bins and estimators, so the same expectation)."""
     if args.pair_only:
         averaged_pair(args.a, args.b, json.loads(Path(args.a, "bake.json").read_text()), args.pair_cache)
         return
@@ -359,8 +407,8 @@ def end_to_end(args: argparse.Namespace) -> None:
         if other["grid"] != fp["grid"] or other["profile"] != fp["profile"]:
             raise SystemExit(f"{path} is not a bake of the same table as {args.bake}")
     hA, hB = averaged_pair(args.a, args.b, fp, args.pair_cache)
-    d_na, d_nb, d_ab = (2 * rel_error2(x, y, dom) for x, y in ((hN, hA), (hN, hB), (hA, hB)))
-    e2 = 0.5 * (d_na + d_nb - d_ab)
+    e2 = three_way_error2(hN, hA, hB, dom)
+    d_ab = 2 * rel_error2(hA, hB, dom)
     plain = json.loads(Path(args.targets).read_text())["results"]["rows"]
     e16 = np.array([r["e16"] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
     for ti in range(grid.n_theta_i):
@@ -368,7 +416,11 @@ def end_to_end(args: argparse.Namespace) -> None:
                          "photons_per_direction": float(photons[ti].mean()),
                          "error": float(np.sqrt(max(e2[ti].mean(), 0.0))), "target_16m": float(np.sqrt(e16[ti])),
                          "error_over_target": float(np.sqrt(max(e2[ti].mean(), 0.0) / e16[ti])),
-                         "error_pair": float(np.sqrt(d_ab[ti].mean() / 2))})
+                         "error_pair": float(np.sqrt(d_ab[ti].mean() / 2)),
+                         # the estimate's own noise: the standard error of the row's mean e^2 over
+                         # its directions, carried to e (d e = d e^2 / 2e)
+                         "error_standard_error": float(e2[ti].std(ddof=1) / np.sqrt(e2.shape[1])
+                                                       / (2 * np.sqrt(max(e2[ti].mean(), 1e-30))))})
     ratio = np.array([r["error_over_target"] for r in out_rows])
     hb = res["header_bake"]
     summary = {
@@ -376,10 +428,91 @@ def end_to_end(args: argparse.Namespace) -> None:
         "photons_total": res["photons_total"], "directions": int(grid.n_theta_i * grid.n_phi_i),
         "error_over_target_rms": float(np.sqrt(np.mean(ratio ** 2))), "error_over_target_max": float(ratio.max()),
         "error_over_target_min": float(ratio.min()), "rows_over_target": int((ratio > 1).sum()),
+        "rows_over_target_beyond_3_standard_errors": int(sum(
+            r["error"] - r["target_16m"] > 3 * r["error_standard_error"] for r in out_rows)),
         "table_error_rms": float(np.sqrt(e2.mean())), "target_rms": float(np.sqrt(e16.mean())),
     }
     print(json.dumps(summary, indent=1))
     rec.doc["results"] = {"bake": res, "rows": out_rows, "summary": summary}
+    rec.finish(args.out)
+
+
+def traced_rows(args: argparse.Namespace) -> None:
+    """The rows a scheduled bake (``bake --schedule``) has traced so far, before its averaging
+    (which needs every row): each complete row's error without averaging, against the analysed
+    pair (unaveraged, :func:`three_way_error2`), beside the model's prediction at the row's
+    photons (the pair's own error in that row, scaled by the photons that met the fiber); with
+    the analysis's averaging ratio of that row, the averaged error the model then gives,
+    against the row's 16M-photon target. And the tracer's wall time per photon by row (its chunks)."""
+    rec = Record("reciprocity_2deg_traced_rows", args)
+    fp = json.loads(Path(args.bake, "bake.json").read_text())
+    from usdfiber.bake.grid import Grid
+    grid = Grid.from_header(fp["grid"])
+    names = {p.name for p in Path(args.bake).glob("d*.npz")}
+    done = [ti for ti in range(grid.n_theta_i)
+            if all(f"d{ti:04d}_{pi:04d}.npz" in names for pi in range(grid.n_phi_i))]
+    if not done:
+        raise SystemExit(f"{args.bake}: no complete theta_i row yet")
+    _, _, N = load_level0(args.bake, done)
+    _, fa, A = load_level0(args.a, done)
+    _, fb, B = load_level0(args.b, done)
+    for other in (fa, fb):
+        if other["grid"] != fp["grid"] or other["profile"] != fp["profile"]:
+            raise SystemExit(f"{args.a} / {args.b} are not bakes of the same table as {args.bake}")
+    sub = [list(range(grid.n_phi_i)) for _ in done]
+    dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
+
+    def rows_of(T: dict, per_batch: int) -> np.ndarray:
+        for d in T.values():
+            d["batches"] = max(1, round(d["photons"] / per_batch))
+        return dense(grid, T)[done]
+
+    pb = {k: int(f["settings"]["photons"]) // int(f["settings"]["batches"]) for k, f in (("n", fp), ("a", fa), ("b", fb))}
+    hN, hA, hB = rows_of(N, pb["n"]), rows_of(A, pb["a"]), rows_of(B, pb["b"])
+    e2 = three_way_error2(hN, hA, hB, dom)
+    e2_pair = rel_error2(hA, hB, dom)
+    an = {r["row"]: r for r in json.loads(Path(args.analysis).read_text())["results"]["rows"]}
+    targets = {r["row"]: r["e16"] for r in json.loads(Path(args.targets).read_text())["results"]["rows"]}
+    out_rows = []
+    for k, ti in enumerate(done):
+        met = lambda T: np.mean([T[(ti, pi)]["n_hit"] + T[(ti, pi)]["misses"] for pi in sub[k]])  # noqa: E731
+        m_n, m_ab = met(N), 0.5 * (met(A) + met(B))
+        err = float(np.sqrt(max(e2[k].mean(), 0.0)))
+        se = float(e2[k].std(ddof=1) / np.sqrt(e2.shape[1]) / (2 * max(err, 1e-15)))
+        pred = float(np.sqrt(e2_pair[k].mean() * m_ab / m_n))
+        ratio_model = an[ti]["variance_ratio_model"]
+        out_rows.append({
+            "row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])),
+            "photons_per_direction": float(np.mean([N[(ti, pi)]["photons"] for pi in sub[k]])),
+            "met_per_direction": float(m_n), "error_unaveraged": err, "error_standard_error": se,
+            "predicted_unaveraged": pred, "measured_over_predicted": err / pred,
+            "averaging_variance_ratio_model": ratio_model,
+            "averaged_error_model": float(err / np.sqrt(ratio_model)), "target_16m": targets[ti],
+            "averaged_over_target": float(err / np.sqrt(ratio_model) / targets[ti]),
+            "trace_wall_ns_per_photon": float(1e9 * sum(N[(ti, pi)]["seconds"] for pi in sub[k])
+                                       / sum(N[(ti, pi)]["photons"] for pi in sub[k]))})
+    mop = np.array([r["measured_over_predicted"] for r in out_rows])
+    aot = np.array([r["averaged_over_target"] for r in out_rows])
+    pred2 = np.array([r["predicted_unaveraged"] ** 2 for r in out_rows])
+    pooled = float(np.sqrt(e2.mean(-1).sum() / pred2.sum()))
+    var_sum = float((e2.var(-1, ddof=1) / e2.shape[1]).sum())
+    pooled_se = float(np.sqrt(var_sum) / pred2.sum() / (2 * pooled))
+    traced = sum(d["photons"] for d in N.values())
+    ns = 1e9 * sum(d["seconds"] for d in N.values()) / traced
+    rows_sched = fp["settings"].get("row_photons") or [int(fp["settings"]["photons"])] * grid.n_theta_i
+    schedule_total = sum(rows_sched) * grid.n_phi_i
+    summary = {"rows_complete": len(done), "rows": grid.n_theta_i, "photons_traced": int(traced),
+               "photons_scheduled": int(schedule_total), "trace_wall_ns_per_photon": ns,
+               "trace_hours_whole_schedule_at_that_rate": schedule_total * ns * 1e-9 / 3600,
+               # all complete rows pooled: sum of measured e^2 over sum of predicted, with the
+               # standard error of that ratio (the rows' e^2 means are independent)
+               "measured_over_predicted_pooled": pooled, "measured_over_predicted_pooled_standard_error": pooled_se,
+               "measured_over_predicted_rms": float(np.sqrt(np.mean(mop ** 2))),
+               "measured_over_predicted_range": [float(mop.min()), float(mop.max())],
+               "averaged_over_target_rms": float(np.sqrt(np.mean(aot ** 2))),
+               "averaged_over_target_max": float(aot.max()), "rows_over_target": int((aot > 1).sum())}
+    print(json.dumps(summary, indent=1))
+    rec.doc["results"] = {"rows": out_rows, "summary": summary}
     rec.finish(args.out)
 
 
@@ -459,6 +592,13 @@ def main() -> None:
     ee.add_argument("--out", type=Path, help="required unless --pair-only")
     ee.add_argument("--pair-cache", type=Path, help="an .npz keeping the averaged pair between runs")
     ee.add_argument("--pair-only", action="store_true", help="only fill --pair-cache (before the bake ends)")
+    tr = sub.add_parser("rows", help="a scheduled bake's complete rows so far, unaveraged, against the model")
+    tr.add_argument("bake", type=Path, help="the directory of a bake --schedule (finished or not)")
+    tr.add_argument("a", type=Path, help="one of the two bakes the schedule's analysis compared")
+    tr.add_argument("b", type=Path, help="the other")
+    tr.add_argument("--analysis", type=Path, required=True, help="the analyse result the schedule came from")
+    tr.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results: each row's 16M-photon error")
+    tr.add_argument("--out", type=Path, required=True)
     bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
     bx.add_argument("--fiber", default="silk")
     bx.add_argument("--direction-photons", type=int, default=1 << 18)
@@ -471,6 +611,8 @@ def main() -> None:
         box_against_centre(args)
     elif args.part == "end-to-end":
         end_to_end(args)
+    elif args.part == "rows":
+        traced_rows(args)
     else:
         analyse(args)
 
