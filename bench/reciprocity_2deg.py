@@ -160,6 +160,15 @@ def load_level0(path: Path, rows: list[int] | None = None) -> tuple[Any, dict, d
     return grid, fp, out
 
 
+def count_batches(fp: dict, slices: dict[tuple[int, int], dict[str, Any]]) -> int:
+    """Each direction's batches (its photons in whole batches of the bake's size, as the baker
+    counts them for the averaging), set on its slice; returns the photons per batch of ``fp``."""
+    per_batch = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
+    for d in slices.values():
+        d["batches"] = max(1, round(d["photons"] / per_batch))
+    return per_batch
+
+
 def dense(grid: Any, slices: dict[tuple[int, int], dict[str, Any]]) -> np.ndarray:
     """Level 0 of every direction's H / batches, (n_theta_i, n_phi_i, bins) float64: each an
     estimate of S(I, O) / |I| (usdfiber.bake.reciprocity)."""
@@ -216,10 +225,8 @@ def analyse(args: argparse.Namespace) -> None:
     _, fp_b, B = load_level0(args.b)
     if fp["grid"] != fp_b["grid"] or fp["profile"] != fp_b["profile"]:
         raise SystemExit("the two bakes are not of one table")
-    per_batch = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
-    for tab in (A, B):
-        for d in tab.values():
-            d["batches"] = max(1, round(d["photons"] / per_batch))
+    per_batch = count_batches(fp, A)
+    count_batches(fp, B)
     n_ti, n_pi = grid.n_theta_i, grid.n_phi_i
     dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
     hA, hB = dense(grid, A), dense(grid, B)
@@ -369,10 +376,7 @@ def averaged_pair(a: Path, b: Path, fp: dict, cache: Path | None) -> tuple[np.nd
         grid, fp2, T = load_level0(path)
         if fp2["grid"] != fp["grid"] or fp2["profile"] != fp["profile"]:
             raise SystemExit(f"{path} is not a bake of the same table")
-        pb = int(fp2["settings"]["photons"]) // int(fp2["settings"]["batches"])
-        for d in T.values():
-            d["batches"] = max(1, round(d["photons"] / pb))
-        pair.append(dense(grid, averaged(grid, T, pb)))
+        pair.append(dense(grid, averaged(grid, T, count_batches(fp2, T))))
         del T
     if cache is not None:
         np.savez(cache, a=pair[0], b=pair[1], key=np.array(key))
@@ -394,9 +398,7 @@ def end_to_end(args: argparse.Namespace) -> None:
     res = json.loads(Path(args.bake, "result.json").read_text())
     grid, fp, N = load_level0(args.bake)
     out_rows = []
-    per_batch_n = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
-    for d in N.values():
-        d["batches"] = max(1, round(d["photons"] / per_batch_n))
+    per_batch_n = count_batches(fp, N)
     dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
     hN = dense(grid, averaged(grid, N, per_batch_n))
     photons = np.array([[N[(ti, pi)]["photons"] for pi in range(grid.n_phi_i)] for ti in range(grid.n_theta_i)])
@@ -460,14 +462,9 @@ def traced_rows(args: argparse.Namespace) -> None:
         if other["grid"] != fp["grid"] or other["profile"] != fp["profile"]:
             raise SystemExit(f"{args.a} / {args.b} are not bakes of the same table as {args.bake}")
     dom = np.repeat(grid.solid_angles(), grid.n_phi_o)
-
-    def rows_of(T: dict, per_batch: int) -> np.ndarray:
-        for d in T.values():
-            d["batches"] = max(1, round(d["photons"] / per_batch))
-        return dense(grid, T)[done]
-
-    pb = {k: int(f["settings"]["photons"]) // int(f["settings"]["batches"]) for k, f in (("n", fp), ("a", fa), ("b", fb))}
-    hN, hA, hB = rows_of(N, pb["n"]), rows_of(A, pb["a"]), rows_of(B, pb["b"])
+    for f, T in ((fp, N), (fa, A), (fb, B)):
+        count_batches(f, T)
+    hN, hA, hB = (dense(grid, T)[done] for T in (N, A, B))
     e2 = three_way_error2(hN, hA, hB, dom)
     e2_pair = rel_error2(hA, hB, dom)
     an = {r["row"]: r for r in json.loads(Path(args.analysis).read_text())["results"]["rows"]}
