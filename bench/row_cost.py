@@ -7,10 +7,12 @@ plain one, and what those rates make a whole 2 deg table.
 Launches are shaped like a full 2 deg bake's: 64 directions of one theta_i row (spread over
 phi_i) x 16,384 photons each, two batches. "expected" is the scheduled bake's estimator (the
 expected value at K = 32 with box bins; its reciprocity averaging runs after the tracing and
-is not timed here), "plain" the plain estimator at centre nodes. Each estimator is traced once
-untimed (its kernels compile), then every (row, estimator) ``--rounds`` times, the order of
-rows and estimators reversed in every other round, so that a drift of the machine falls on
-both alike; medians are quoted with their spread over the rounds.
+is not timed here), "plain" the plain estimator at centre nodes. Each round traces every row
+with one estimator, then every row with the other, each block after an untimed call (a bake
+runs one estimator throughout; the first call of a process, or the first after the other
+estimator's, is slower); every other round reverses the order of the estimators and of the
+rows, so that a drift of the machine falls on both alike. Medians are quoted with their spread
+over the rounds.
 
 The whole-table projection interpolates each estimator's wall time per photon (tracing and the
 per-direction statistics, as a bake spends it) linearly over theta_i between the measured
