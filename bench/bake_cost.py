@@ -68,9 +68,7 @@ def cmd_rate(args: argparse.Namespace) -> int:
         dirs_all = table_directions(req, st)
         full = (min(directions_per_group(st), len(dirs_all)), st.photons_per_batch)
         shapes = sorted({launch_shape(st, len(dirs_all), s) for s in sizes} | {full}, key=lambda km: km[0] * km[1])
-        c = req.cuticle
-        cut = (float(c[0]), float(c[1]), float(c[2])) if c is not None and float(c[1]) > 0.0 else None
-        ctx = bake_context(req.profile(), req.eta, req.beta_deg, cut, replace(st, target_error=None))
+        ctx = bake_context(req.profile(), req.eta, req.beta_deg, req.cuticle_scales, replace(st, target_error=None))
 
         def run(k: int, m: int) -> tuple[float, float]:
             spread = [dirs_all[min(len(dirs_all) - 1, int((j + 0.5) * len(dirs_all) / k))] for j in range(k)]

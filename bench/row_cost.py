@@ -68,12 +68,10 @@ def main() -> None:
 
     rec = Record("row_cost", args)
     req = requests_from_preset(args.fiber)[0]
-    c = req.cuticle
-    cut = (float(c[0]), float(c[1]), float(c[2])) if c is not None and float(c[1]) > 0.0 else None
     rows = [int(r) for r in args.rows.split(",")]
     kinds = ("expected", "plain")
-    ctx = {k: baker.bake_context(req.profile(), req.eta, req.beta_deg, cut, settings(k, args.per_batch, args.seed))
-           for k in kinds}
+    ctx = {k: baker.bake_context(req.profile(), req.eta, req.beta_deg, req.cuticle_scales,
+                                 settings(k, args.per_batch, args.seed)) for k in kinds}
     grid = ctx["expected"].grid
     if args.phi == "spread":
         phis = np.linspace(0, grid.n_phi_i - 1, args.directions).round().astype(int)
