@@ -34,6 +34,9 @@ also name a computed schedule, a JSON list of photons per row: silk's is
 without averaging against the analysed pair, beside the model's prediction at the row's
 photons, and the averaged error the model's averaging ratio then gives against the target.
 
+``wall``: the bake's wall time when it ran as several processes, each resumed from the last's
+chunks, less the intervals it was stopped (SIGSTOP) so that other work could have the machine.
+
 ``end-to-end``: that table's error per row against its target, from the two analysed bakes
 (each averaged as the baker averages): the new table's error^2 is ``(d_NA + d_NB - d_AB) / 2``
 with ``d_XY`` the squared L2 distance between the p of tables X and Y, over ``||p_N||^2``
@@ -49,6 +52,9 @@ with ``d_XY`` the squared L2 distance between the p of tables X and Y, over ``||
     python bench/reciprocity_2deg.py rows /tmp/e2e/silk /tmp/box2/silk-a /tmp/box2/silk-b \\
         --analysis bench/results/reciprocity_2deg_silk.json --targets bench/results/full_bake_2deg_silk.json \\
         --out bench/results/reciprocity_2deg_rows_silk.json
+    python bench/reciprocity_2deg.py wall --process 2026-12-03T15:02:17 2026-12-03T16:23:01 \\
+        --process ... --pauses bench/results/reciprocity_2deg_end_to_end_silk_pauses.txt \\
+        --out bench/results/reciprocity_2deg_end_to_end_silk_wall.json
     python bench/reciprocity_2deg.py end-to-end /tmp/e2e/silk /tmp/box2/silk-a /tmp/box2/silk-b \\
         --targets bench/results/full_bake_2deg_silk.json --out bench/results/reciprocity_2deg_end_to_end_silk.json
 """
@@ -439,6 +445,39 @@ def end_to_end(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def wall(args: argparse.Namespace) -> None:
+    """The wall time of a bake that ran as several processes (each resumed from the chunks of
+    the last): each process's span (process start to its last chunk write or its end) less the
+    intervals in ``--pauses`` during which the bake was stopped (SIGSTOP) so that other work
+    could have the machine. Times are UTC, ISO 8601."""
+    import datetime as dt
+
+    def when(text: str) -> float:
+        return dt.datetime.fromisoformat(text).replace(tzinfo=dt.timezone.utc).timestamp()
+
+    pauses = []
+    for line in Path(args.pauses).read_text().splitlines():
+        if line.strip() and not line.lstrip().startswith("#"):
+            a, b = line.split()[:2]
+            pauses.append((when(a), when(b)))
+    rec = Record("reciprocity_2deg_wall", args)
+    parts = []
+    for start, end in args.processes:
+        a, b = when(start), when(end)
+        if b <= a:
+            raise SystemExit(f"--process {start} {end}: the end is not after the start")
+        paused = sum(max(0.0, min(b, y) - max(a, x)) for x, y in pauses)
+        inside = sum(1 for x, y in pauses if min(b, y) > max(a, x))
+        parts.append({"start": start, "end": end, "span_seconds": b - a, "paused_seconds": paused,
+                      "pauses": inside, "seconds": b - a - paused})
+    total = sum(p["seconds"] for p in parts)
+    summary = {"seconds": total, "hours": total / 3600, "paused_seconds": sum(p["paused_seconds"] for p in parts),
+               "pauses": sum(p["pauses"] for p in parts)}
+    print(json.dumps({"parts": parts, "summary": summary}, indent=1))
+    rec.doc["results"] = {"parts": parts, "summary": summary}
+    rec.finish(args.out)
+
+
 def traced_rows(args: argparse.Namespace) -> None:
     """The rows a scheduled bake (``bake --schedule``) has traced so far, before its averaging
     (which needs every row): each complete row's error without averaging, against the analysed
@@ -598,6 +637,12 @@ def main() -> None:
     tr.add_argument("--analysis", type=Path, required=True, help="the analyse result the schedule came from")
     tr.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results: each row's 16M-photon error")
     tr.add_argument("--out", type=Path, required=True)
+    wl = sub.add_parser("wall", help="a bake's wall time over its resumed processes, less the pauses")
+    wl.add_argument("--process", dest="processes", nargs=2, action="append", required=True,
+                    metavar=("START", "END"),
+                    help="one process: its start and its end or last chunk write (UTC, ISO 8601)")
+    wl.add_argument("--pauses", type=Path, required=True, help="a file of 'START END' lines: the bake stopped")
+    wl.add_argument("--out", type=Path, required=True)
     bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
     bx.add_argument("--fiber", default="silk")
     bx.add_argument("--direction-photons", type=int, default=1 << 18)
@@ -612,6 +657,8 @@ def main() -> None:
         end_to_end(args)
     elif args.part == "rows":
         traced_rows(args)
+    elif args.part == "wall":
+        wall(args)
     else:
         analyse(args)
 
