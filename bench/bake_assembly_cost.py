@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -27,15 +26,8 @@ from typing import Any, Callable
 import numpy as np
 
 from bake_common import Record
+from bench_common import RssSampler
 from reciprocity_2deg import settings
-
-
-def rss_anon() -> int:
-    """This process's anonymous resident bytes."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("RssAnon:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError("no RssAnon in /proc/self/status")
 
 
 def copy_checksum(a: np.ndarray) -> str:
@@ -64,14 +56,6 @@ def run(directory: Path, st: Any, fiber: str, checksum: str) -> dict[str, Any]:
     from usdfiber.bake.requests import requests_from_preset
 
     marks: list[tuple[str, float]] = []
-    samples: list[tuple[float, int]] = []
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.is_set():
-            samples.append((time.perf_counter(), rss_anon()))
-            time.sleep(0.5)
-
     spent = [0.0]
     digest = table_format.array_checksum if checksum == "inplace" else copy_checksum
 
@@ -86,7 +70,8 @@ def run(directory: Path, st: Any, fiber: str, checksum: str) -> dict[str, Any]:
             timed(table_format, "save_npz_atomic", marks)]
     former, table_format.array_checksum = table_format.array_checksum, counted
     out = directory.parent / f".{directory.name}-assembly-cost.npz"
-    threading.Thread(target=sample, daemon=True).start()
+    sampler = RssSampler("RssAnon", period=0.5)
+    sampler.start()
     t0 = time.perf_counter()
     try:
         table = baker.bake_request(requests_from_preset(fiber)[0], st, resume_dir=directory)
@@ -94,12 +79,12 @@ def run(directory: Path, st: Any, fiber: str, checksum: str) -> dict[str, Any]:
         table.save(out)
         marks.append(("save end", time.perf_counter()))
     finally:
-        done.set()
+        sampler.stop = True
+        sampler.join()
         table_format.array_checksum = former
         for u in undo:
             u()
         out.unlink(missing_ok=True)
-    t_peak, peak = max(samples, key=lambda s: s[1])
     at = dict((k, t - t0) for k, t in marks)
     return {"checksum": checksum,
             "seconds": {"chunks_read_and_added": at["finish start"],
@@ -108,7 +93,7 @@ def run(directory: Path, st: Any, fiber: str, checksum: str) -> dict[str, Any]:
                         "checksums": spent[0],
                         "npz_write": at["save_npz_atomic end"] - at["save_npz_atomic start"],
                         "total": at["save end"]},
-            "peak_anon_bytes": peak, "peak_at_seconds": t_peak - t0,
+            "peak_anon_bytes": int(sampler.peak * 2**20), "peak_at_seconds": sampler.peak_at - t0,
             "table_arrays_bytes": int(sum(a.nbytes for a in table.arrays.values())),
             "checksums_of_table": table.header["checksums"]}
 
@@ -120,11 +105,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2, help="the bake's seed (its chunks' key)")
     ap.add_argument("--schedule", type=Path, required=True, help="the bake's schedule, a JSON list of photons per row")
     ap.add_argument("--per-batch", type=int, default=16384)
+    ap.add_argument("--resolution", type=float, default=2.0, help="the bake's resolution, deg (coarser: a smoke run)")
     ap.add_argument("--checksum", default="inplace,copy", help="modes, in order (inplace, copy)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     rec = Record("bake_assembly_cost", args)
-    st = settings(10_000, args.seed)
+    st = settings(10_000, args.seed, args.resolution)
     rows = [int(n) for n in json.loads(args.schedule.read_text())]
     st = replace(st, photons=args.per_batch * st.batches, row_photons=tuple(rows),
                  estimator=("expected", "reciprocity"))

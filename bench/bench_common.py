@@ -6,6 +6,7 @@ import os
 import platform
 import shutil
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -97,6 +98,23 @@ def proc_status_mib(key: str, pid: str = "self") -> float | None:
     except OSError:
         pass
     return None
+
+
+class RssSampler(threading.Thread):
+    """Samples a /proc/self/status entry (``key``, MiB) every ``period`` seconds until ``stop``
+    is set: ``peak``, and ``peak_at`` (``time.perf_counter()`` of the peak sample)."""
+
+    def __init__(self, key: str = "VmRSS", period: float = 0.01) -> None:
+        super().__init__(daemon=True)
+        self.key, self.period = key, period
+        self.peak, self.peak_at, self.stop = 0.0, 0.0, False
+
+    def run(self) -> None:
+        while not self.stop:
+            r = proc_status_mib(self.key) or 0.0
+            if r > self.peak:
+                self.peak, self.peak_at = r, time.perf_counter()
+            time.sleep(self.period)
 
 
 def machine(**extra: Any) -> dict[str, Any]:

@@ -63,14 +63,13 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import bench_common  # noqa: E402
-from bench_common import Timer, json_default as _json_default, md_table as _table, proc_status_mib  # noqa: E402
+from bench_common import RssSampler, Timer, json_default as _json_default, md_table as _table, proc_status_mib  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -628,18 +627,6 @@ def part_convergence(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str,
 # Part 3: translation at scale (one subprocess per size)
 # ---------------------------------------------------------------------------------------------
 
-class _RssSampler(threading.Thread):
-    def __init__(self, period: float = 0.01) -> None:
-        super().__init__(daemon=True)
-        self.period, self.peak, self.stop = period, 0.0, False
-
-    def run(self) -> None:
-        while not self.stop:
-            r = proc_status_mib("VmRSS") or 0.0
-            self.peak = max(self.peak, r)
-            time.sleep(self.period)
-
-
 def scale_worker(args: argparse.Namespace) -> None:
     """One size, in this (fresh) process; prints one JSON line."""
     t_import = time.perf_counter()
@@ -668,7 +655,7 @@ def scale_worker(args: argparse.Namespace) -> None:
         cleared = True
     except OSError:
         pass
-    sampler = _RssSampler()
+    sampler = RssSampler()
     sampler.start()
     with Timer() as t:
         tr = translate_stage(stage, SceneOptions(resolution=(args.res, args.res), spp=args.spp, bake=settings,
