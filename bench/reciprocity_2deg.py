@@ -37,6 +37,18 @@ photons, and the averaged error the model's averaging ratio then gives against t
 ``wall``: the bake's wall time when it ran as several processes, each resumed from the last's
 chunks, less the intervals it was stopped (SIGSTOP) so that other work could have the machine.
 
+``reschedule``: a row schedule moved to other targets: each row's photons scaled by (old
+target / new target)^2 and rounded to whole batches (``--rounding nearest`` by default: the old
+schedule's rows were already rounded up once, and rounding up again adds about 2.5 % of
+photons; ``up`` as the baker would), e.g. from the 10k-photon plain table's
+``e16`` to its ``e16_unbiased`` (``full_bake_2deg.py``: the estimate freed of its own noise in
+the norm, checked at 16M photons by ``target_bias.py``). Error^2 goes as 1/N per row; the
+averaging mixes a row with its partners' rows, mostly its own and its mirror's for a fiber whose
+light stays near the specular cone, so per-row scaling is first-order. With ``--end-to-end``
+(that command's result for the old schedule) it predicts each row's error over its new target,
+and with ``--ns-per-photon`` (the bake's measured tracer time per photon by rows) the tracing
+time of both schedules.
+
 ``end-to-end``: that table's error per row against its target, from the two analysed bakes
 (each averaged as the baker averages): the new table's error^2 is ``(d_NA + d_NB - d_AB) / 2``
 with ``d_XY`` the squared L2 distance between the p of tables X and Y, over ``||p_N||^2``
@@ -445,6 +457,54 @@ def end_to_end(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def reschedule(args: argparse.Namespace) -> None:
+    """A row schedule scaled to other targets (see the module docstring)."""
+    rec = Record("reciprocity_2deg", args)
+    old = np.asarray(json.loads(Path(args.schedule).read_text()), dtype=np.float64)
+    rows = sorted(json.loads(Path(args.targets).read_text())["results"]["rows"], key=lambda r: r["row"])
+    if [r["row"] for r in rows] != list(range(len(old))):
+        raise SystemExit(f"{args.targets} does not hold one target per row of the {len(old)}-row schedule")
+    t_from = np.array([r[args.from_key] for r in rows])
+    t_to = np.array([r[args.to_key] for r in rows])
+    scale = (t_from / t_to) ** 2
+    rnd = np.ceil if args.rounding == "up" else np.round
+    new = np.maximum(rnd(old * scale / args.per_batch), 1) * args.per_batch
+    out: dict[str, Any] = {"rows": [], "per_batch": args.per_batch, "rounding": args.rounding,
+                           "photons_new_over_scaled": float(new.sum() / (old * scale).sum())}
+    for i in range(len(old)):
+        out["rows"].append({"row": i, "photons_old": int(old[i]), "photons_new": int(new[i]),
+                            "target_old": float(t_from[i]), "target_new": float(t_to[i])})
+    if args.end_to_end:
+        e2e = {r["row"]: r for r in json.loads(Path(args.end_to_end).read_text())["results"]["rows"]}
+        for r in out["rows"]:
+            m = e2e[r["row"]]
+            # error^2 ~ 1/N: the old bake's measured error at the new photons, over the new target.
+            r["error_over_new_target_predicted"] = float(m["error"] * math.sqrt(r["photons_old"] / r["photons_new"])
+                                                         / r["target_new"])
+            r["error_over_new_target_at_old_photons"] = float(m["error"] / r["target_new"])
+        pred = np.array([r["error_over_new_target_predicted"] for r in out["rows"]])
+        out["error_over_new_target_predicted_rms"] = float(np.sqrt(np.mean(pred ** 2)))
+        out["error_over_new_target_predicted_max"] = float(pred.max())
+    n_pi = args.directions_per_row
+    out["photons_total_old"] = float(old.sum() * n_pi)
+    out["photons_total_new"] = float(new.sum() * n_pi)
+    if args.ns_per_photon:
+        ns = np.full(len(old), np.nan)
+        for part in args.ns_per_photon.split(","):
+            span, value = part.split(":")
+            lo, hi = (int(x) for x in span.split("-"))
+            ns[lo:hi + 1] = float(value)
+        if np.isnan(ns).any():
+            raise SystemExit("--ns-per-photon must cover every row")
+        out["tracing_hours_old"] = float((old * n_pi * ns).sum() * 1e-9 / 3600)
+        out["tracing_hours_new"] = float((new * n_pi * ns).sum() * 1e-9 / 3600)
+    if args.schedule_out:
+        Path(args.schedule_out).write_text(json.dumps([int(x) for x in new]) + "\n")
+    rec.doc["results"] = out
+    rec.finish(args.out)
+    print(json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=1))
+
+
 def wall(args: argparse.Namespace) -> None:
     """The wall time of a bake that ran as several processes (each resumed from the chunks of
     the last): each process's span (process start to its last chunk write or its end) less the
@@ -643,6 +703,19 @@ def main() -> None:
                     help="one process: its start and its end or last chunk write (UTC, ISO 8601)")
     wl.add_argument("--pauses", type=Path, required=True, help="a file of 'START END' lines: the bake stopped")
     wl.add_argument("--out", type=Path, required=True)
+    rs = sub.add_parser("reschedule", help="a row schedule scaled to other per-row targets")
+    rs.add_argument("--schedule", type=Path, required=True, help="a JSON list of photons per direction of each row")
+    rs.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results holding both keys")
+    rs.add_argument("--from-key", default="e16", help="the targets the schedule was made for")
+    rs.add_argument("--to-key", default="e16_unbiased", help="the targets to move it to")
+    rs.add_argument("--per-batch", type=int, default=16384)
+    rs.add_argument("--rounding", choices=("nearest", "up"), default="nearest",
+                    help="to whole batches: nearest (the old schedule was rounded up already) or up")
+    rs.add_argument("--directions-per-row", type=int, default=180)
+    rs.add_argument("--end-to-end", type=Path, help="the end-to-end result of the old schedule's bake")
+    rs.add_argument("--ns-per-photon", help="tracer ns per photon by rows, e.g. 0-19:2538,20-44:5000")
+    rs.add_argument("--schedule-out", type=Path, help="where to write the new schedule (a JSON list)")
+    rs.add_argument("--out", type=Path, required=True)
     bx = sub.add_parser("box", help="the expected value's noise and CPU per photon: box bins against centre nodes")
     bx.add_argument("--fiber", default="silk")
     bx.add_argument("--direction-photons", type=int, default=1 << 18)
@@ -659,6 +732,8 @@ def main() -> None:
         traced_rows(args)
     elif args.part == "wall":
         wall(args)
+    elif args.part == "reschedule":
+        reschedule(args)
     else:
         analyse(args)
 

@@ -240,8 +240,22 @@ def test_refusals_are_budget_and_disk_limits(tmp_path, monkeypatch):
         reciprocity.check_memory(g, 11, tmp_path, MemoryBudget(1 << 30, "test"))
     free = 10 * 10 ** 9
     monkeypatch.setattr(reciprocity.shutil, "disk_usage", lambda p: type("U", (), {"free": free})())
-    with pytest.raises(BakeError, match=rf"needs 11.5 GB of scratch disk in {tmp_path} \(10.0 GB free\)"):
+    with pytest.raises(BakeError, match=rf"needs 11.5 GB of disk in {tmp_path} for its scratch files \(10.0 GB free\)"):
         reciprocity.check_memory(g, 11, tmp_path, MemoryBudget(need, "test"))
+    # A resume directory also takes the chunks it does not hold yet (uncompressed): all of them
+    # on an empty one, none once every direction is there.
+    free = 30 * 10 ** 9
+    full = reciprocity.scratch_bytes(g, 11) + 8100 * reciprocity.chunk_bytes(g, 11)
+    assert 23.1e9 < full < 23.2e9
+    reciprocity.check_memory(g, 11, tmp_path, MemoryBudget(need, "test"), chunks=True)
+    free = 20 * 10 ** 9
+    with pytest.raises(BakeError, match=r"needs 23.2 GB of disk .* for its scratch files and chunks \(20.0 GB free\)"):
+        reciprocity.check_memory(g, 11, tmp_path, MemoryBudget(need, "test"), chunks=True)
+    for ti in range(45):
+        for pi in range(180):
+            tmp_path.joinpath(f"d{ti:04d}_{pi:04d}.npz").touch()
+    reciprocity.check_memory(g, 11, tmp_path, MemoryBudget(need, "test"), chunks=True)
+    free = 10 * 10 ** 9
     # A resume directory that does not exist yet is checked on its nearest parent.
     with pytest.raises(BakeError, match=rf"in {tmp_path} "):
         reciprocity.check_memory(g, 11, tmp_path / "partial" / "key", MemoryBudget(need, "test"))
@@ -262,7 +276,7 @@ def test_bake_refuses_before_tracing(tmp_path, monkeypatch):
         bake_table(prof, ETA, 10.0, None, st)
     monkeypatch.delenv("USDFIBER_MEMORY_BUDGET")
     monkeypatch.setattr(reciprocity.shutil, "disk_usage", lambda p: type("U", (), {"free": 1000})())
-    with pytest.raises(BakeError, match=rf"scratch disk in {tmp_path / 'resume'} "):
+    with pytest.raises(BakeError, match=rf"of disk in {tmp_path / 'resume'} for its scratch files and chunks "):
         tmp_path.joinpath("resume").mkdir()
         bake_table(prof, ETA, 10.0, None, st, resume_dir=tmp_path / "resume")
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 import subprocess
 import sys
 import textwrap
@@ -36,7 +37,7 @@ def arrays() -> dict[str, np.ndarray]:
     }
 
 
-@pytest.mark.parametrize("compress", [True, False])
+@pytest.mark.parametrize("compress", [True, False, 0, 1, 9])
 def test_round_trip(tmp_path, compress):
     path = tmp_path / "t.npz"
     written = write_table(path, header(), arrays(), compress=compress)
@@ -55,6 +56,17 @@ def test_round_trip(tmp_path, compress):
         assert raw == h and np.array_equal(z["counts"], arrays()["counts"])
     assert (path.stat().st_mode & 0o777) == 0o644
     assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]  # no temp file left
+    # Stored or deflated, as asked (True: the default level).
+    with zipfile.ZipFile(path) as z:
+        methods = {i.compress_type for i in z.infolist()}
+    assert methods == ({zipfile.ZIP_DEFLATED} if compress else {zipfile.ZIP_STORED})
+
+
+@pytest.mark.parametrize("bad", [-1, 10, 2.5])
+def test_refuses_unknown_levels(tmp_path, bad):
+    with pytest.raises(ValueError, match="zlib level"):
+        write_table(tmp_path / "t.npz", header(), arrays(), compress=bad)
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("a", [

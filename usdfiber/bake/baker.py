@@ -222,7 +222,8 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
     st.check_rows(grid)
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
     if "reciprocity" in st.estimator:
-        check_memory(grid, len(levels_um), scratch)      # before hours of tracing, not after
+        # Before hours of tracing, not after; the chunks go there too when it is a resume directory.
+        check_memory(grid, len(levels_um), scratch, chunks=scratch is not None)
     if "split" in st.estimator and cut is not None:
         raise BakeError("estimator 'split' needs a fiber without cuticle scales (the test that light "
                         "leaving through the scales never meets them again is not built)")

@@ -7,8 +7,8 @@ an interruption loses at most the group in flight. The directory holds:
 * ``bake.json``: the bake's inputs and settings (its *fingerprint*, canonical JSON). A bake
   with another fingerprint removes the chunks it finds: they cannot be reused.
 * ``d<ti>_<pi>.npz``: one chunk per direction, a :mod:`usdfiber.table_format` container of
-  format :data:`CHUNK_FORMAT` (written atomically, a checksum per array) whose header names
-  the bake key (sha256 of the fingerprint) and the direction ``[ti, pi]``; arrays ``rows``
+  format :data:`CHUNK_FORMAT` (written atomically and uncompressed, a checksum per array)
+  whose header names the bake key (sha256 of the fingerprint) and the direction ``[ti, pi]``; arrays ``rows``
   (the theta_o rows held), ``H`` and ``G`` (the sums of ``exp(-s_k L)`` and ``L exp(-s_k L)``
   per bin and level, :mod:`usdfiber.bake.statistics`) and ``scalars`` (:data:`SCALARS`).
 
@@ -31,13 +31,18 @@ import numpy as np
 
 from usdfiber import table_format
 
-__all__ = ["CHUNK_FORMAT", "SCALARS", "ResumeDirectory", "chunk_name"]
+__all__ = ["CHUNK_COMPRESS", "CHUNK_FORMAT", "SCALARS", "ResumeDirectory", "chunk_name"]
 
 #: The container format name of a chunk file.
 CHUNK_FORMAT = "usdfiber-bake-chunk"
 #: The per-direction numbers of a chunk's ``scalars`` array, in order.
 SCALARS = ("norm", "photons", "n_hit", "n_cut", "leaks", "misses", "rel_error", "seconds")
 _INTEGER_SCALARS = ("photons", "n_hit", "n_cut", "leaks")
+#: How chunks are written (``table_format.write_table``'s ``compress``): stored. Deflate (level
+#: 6 or 1 alike) shrinks a chunk's float32 sums only to 0.6-0.7 and took 2.6 s per group of 64
+#: 2 deg directions against 0.36 s stored (reads 0.6 against 0.26 s), 1-4 % of the group's
+#: tracing; chunks are scratch, removed once the table is cached (bench/REPORT.md, section 7).
+CHUNK_COMPRESS: bool | int = False
 
 
 def chunk_name(ti: int, pi: int) -> str:
@@ -51,6 +56,8 @@ class ResumeDirectory:
     def __init__(self, path: str | os.PathLike[str], fingerprint: Mapping[str, Any],
                  histogram: tuple[int, int, int] | None = None) -> None:
         self.path = Path(path)
+        #: how chunks are written (:data:`CHUNK_COMPRESS`); any is read.
+        self.compress: bool | int = CHUNK_COMPRESS
         #: (levels, theta_o rows, phi_o columns) of the bake's histograms, when known: a
         #: chunk's H and G must fit them.
         self.histogram = histogram
@@ -94,7 +101,8 @@ class ResumeDirectory:
             "scalars": np.array([data[k] for k in SCALARS], dtype=np.float64),
         }
         header = {"bake_key": self.key, "direction": [int(ti), int(pi)], "scalars": list(SCALARS)}
-        table_format.write_table(self.chunk_path(ti, pi), header, arrays, container=CHUNK_FORMAT)
+        table_format.write_table(self.chunk_path(ti, pi), header, arrays, container=CHUNK_FORMAT,
+                                 compress=self.compress)
 
     def load(self, ti: int, pi: int) -> dict[str, Any] | None:
         """The chunk of (ti, pi), verified; None (with a RuntimeWarning) when it cannot be used."""

@@ -45,6 +45,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from usdfiber import table_format
 from usdfiber.bake.settings import BakeSettings, directions_per_group
 
 __all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "RECIPROCITY_BYTES_PER_SECOND", "PROBE_LAUNCH_PHOTONS", "PROBE_PHOTONS", "BakeEstimate", "Probe",
@@ -67,7 +68,7 @@ _COMPILE_PHOTONS = 256
 #: A bake estimated to take longer than this is announced with a warning before it starts.
 LONG_BAKE_SECONDS = 600.0
 #: Version of the probe's measurements (part of its key).
-PROBE_VERSION = 4
+PROBE_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -321,8 +322,8 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
 _PER_DIRECTION = ("p", "lbar", "p_scale", "albedo", "albedo_lbar", "band_start", "rel_error", "photons")
 
 
-#: zlib level of ``numpy.savez_compressed`` (the zip module's default for deflate).
-_DEFLATE_LEVEL = 6
+#: zlib level the table file is written at (:data:`usdfiber.table_format.DEFAULT_LEVEL`).
+_DEFLATE_LEVEL = table_format.DEFAULT_LEVEL
 
 
 def _fixed_bytes(path: Path) -> float:

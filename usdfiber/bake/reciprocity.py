@@ -49,7 +49,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
-__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "incoming_measure", "node_partners", "node_weights", "partner_bins",
+__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "chunk_bytes", "incoming_measure", "node_partners", "node_weights", "partner_bins",
            "reciprocal_average", "scratch_bytes"]
 
 
@@ -75,13 +75,21 @@ def _existing(path: Path) -> Path:
     return path
 
 
+def chunk_bytes(grid: Grid, n_levels: int) -> int:
+    """Disk bytes of one direction's resume chunk at most (:mod:`usdfiber.bake.chunks`, written
+    without compression): H and G in float32 over every theta_o row, and its header."""
+    return 2 * 4 * grid.n_theta_o * grid.n_phi_o * int(n_levels) + 8192
+
+
 def check_memory(grid: Grid, n_levels: int, scratch: str | os.PathLike[str] | None = None,
-                 budget: MemoryBudget | None = None) -> None:
+                 budget: MemoryBudget | None = None, *, chunks: bool = False) -> None:
     """Raise BakeError (before anything is traced) when averaging a table of ``grid`` with
     ``n_levels`` absorption levels cannot be done: its grid has no reciprocal partners
     (:func:`check_grid`), one level's working set (:func:`usdfiber.bake.settings.reciprocity_bytes`)
     exceeds ``budget`` (default :meth:`MemoryBudget.resolve`), or the disk of ``scratch`` (the
-    directory that will hold the scratch files; None: not checked) lacks :func:`scratch_bytes`."""
+    directory that will hold the scratch files; None: not checked) lacks :func:`scratch_bytes`,
+    and with ``chunks`` (``scratch`` is also the bake's resume directory) the chunks it does not
+    hold yet (:func:`chunk_bytes` each)."""
     check_grid(grid)
     what = (f"reciprocity averaging of a {grid.resolution_deg:g} deg table with "
             f"{grid.n_theta_i * grid.n_phi_i} directions")
@@ -94,10 +102,14 @@ def check_memory(grid: Grid, n_levels: int, scratch: str | os.PathLike[str] | No
     if scratch is not None:
         where = _existing(Path(scratch))
         disk, free = scratch_bytes(grid, n_levels), shutil.disk_usage(where).free
+        if chunks:
+            held = len(list(Path(scratch).glob("d*_*.npz"))) if Path(scratch).is_dir() else 0
+            disk += max(0, grid.n_theta_i * grid.n_phi_i - held) * chunk_bytes(grid, n_levels)
         if disk > free:
-            raise BakeError(f"{what} needs {disk / 1e9:.1f} GB of scratch disk in {where} ({free / 1e9:.1f} GB "
-                            "free): free space there, bake with a resume directory (or TMPDIR) on a larger disk, or "
-                            "without the 'reciprocity' estimator")
+            held_there = "scratch files and chunks" if chunks else "scratch files"
+            raise BakeError(f"{what} needs {disk / 1e9:.1f} GB of disk in {where} for its {held_there} "
+                            f"({free / 1e9:.1f} GB free): free space there, bake with a resume directory "
+                            "(or TMPDIR) on a larger disk, or without the 'reciprocity' estimator")
 
 
 def node_partners(grid: Grid, ti: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -15,7 +15,7 @@ from usdfiber.bake import band_limit
 from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
-__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS",
+__all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS", "PROCESS_BYTES",
            "RECIPROCITY_NODE_BYTES", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
            "BakeSettings", "directions_per_group", "reciprocity_bytes", "render_bake_settings"]
 
@@ -56,6 +56,10 @@ EXPECTED_SAMPLERS = ("ndf", "visible")
 #: (2^22 events of 84 bytes).
 EXPECTED_HIST_BYTES = 256 << 20
 EXPECTED_QUEUE_BYTES = (1 << 22) * 84
+#: The baking process's own resident memory beside a table's: the interpreter, NumPy, Mitsuba,
+#: Dr.Jit and LLVM (their code mapped from disk and their caches). Measured 0.27 GiB resident
+#: once imported, file-backed pages up to 0.17 GiB during a bake.
+PROCESS_BYTES = 512 << 20
 #: The "reciprocity" estimator's temporaries per entry of the theta_i node being averaged
 #: (partner indices, weights, the averaged H and G; 45-53 bytes measured with tracemalloc):
 #: :func:`reciprocity_bytes`.
@@ -264,11 +268,13 @@ class BakeSettings:
     def table_bytes(self) -> int:
         """Peak bytes of baking one table with these settings, an upper bound: the assembled
         per-bin arrays ``p`` and ``lbar`` with a full theta_o band (:mod:`usdfiber.bake.storage`),
-        the float64 sums of a group of directions in flight (:mod:`usdfiber.bake.statistics`)
+        the float64 sums of a group of directions in flight and their batches' running moments
+        (:mod:`usdfiber.bake.statistics`: not one histogram per batch, so not growing with batches)
         and the tracer's photons (about 2^21 at 64 bytes); with the "reciprocity" estimator,
         also one absorption level of every direction's histograms (:func:`reciprocity_bytes`);
         with "expected", the tracer's histograms and event queue (:data:`EXPECTED_HIST_BYTES`,
-        :data:`EXPECTED_QUEUE_BYTES`)."""
+        :data:`EXPECTED_QUEUE_BYTES`); and the process's own (:data:`PROCESS_BYTES`), so that it
+        bounds the whole process's resident peak, file-backed pages included."""
         # (with auto_resolution, resolution_deg is the finest grid the rule chooses)
         g = Grid(self.resolution_deg, True, False, self.incoming_deg)
         K = len(self.levels)
@@ -277,8 +283,9 @@ class BakeSettings:
         group = directions_per_group(self)
         symmetrize = reciprocity_bytes(g) if "reciprocity" in self.estimator else 0
         expected = EXPECTED_HIST_BYTES + EXPECTED_QUEUE_BYTES if "expected" in self.estimator else 0
-        return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * per_direction * 16
-                + (1 << 21) * 64 + symmetrize + expected)
+        moments = 3 * g.n_theta_o * g.n_phi_o * 8     # mean, squared deviations, solid angles
+        return (g.n_theta_i * g.n_phi_i * per_direction * 2 * item + group * (per_direction * 16 + moments)
+                + (1 << 21) * 64 + symmetrize + expected + PROCESS_BYTES)
 
     def result_inputs(self) -> dict[str, Any]:
         """Everything that changes a baked table (for cache keys and headers)."""

@@ -104,9 +104,15 @@ class DirectionStatistics:
         K = len(ctx.levels_um)
         self.H = np.zeros((K, self.nb))
         self.G = np.zeros((K, self.nb))
-        self.batch_hist: list[np.ndarray] = []
-        self.batch_norm: list[float] = []
-        self.batch_weight: list[float] = []
+        # The batches' p at sigma_a = 0 as running weighted moments (West's update), not kept
+        # one by one: a direction may run to thousands of batches (target-error mode), and a
+        # group of directions would hold them all.
+        self.n_batches = 0
+        self.weight_sum = 0.0         # sum of the batches' weights (the table's ``norm``)
+        self.weight_sq_sum = 0.0
+        self.p_mean = np.zeros(self.nb)
+        self.p_m2 = np.zeros(self.nb)
+        self._dom = np.repeat(g.solid_angles(), g.n_phi_o)
         self.rng = np.random.default_rng([int(st.seed) & 0xFFFFFFFF, ti, pi, 7])
         self.strata = (self.rng.permutation(int(st.batches)), self.rng.permutation(int(st.batches)))
         self.stats = {"n_hit": 0, "n_cut": 0, "launched": 0, "leaks": 0, "misses": 0.0}
@@ -178,32 +184,43 @@ class DirectionStatistics:
         else:
             weight = ctx.env_width(ph_b) * math.cos(th_b)
         scale = weight / norm if norm > 0 else 0.0
-        self.H += scale * h
-        self.G += scale * gl
-        self.batch_hist.append(h[0])
-        self.batch_norm.append(norm)
-        self.batch_weight.append(weight)
+        self._add_moments(h[0] / max(norm, 1e-300), weight)
+        # Scaled in place (h and gl are this batch's own): no megabyte temporaries per batch.
+        self.H += np.multiply(h, scale, out=h)
+        self.G += np.multiply(gl, scale, out=gl)
         self.stats["n_hit"] += int(r.n_hit)
         self.stats["n_cut"] += int(r.n_cut)
         self.stats["launched"] += int(r.n_launched)
         self.stats["leaks"] += int(r.extra.get("leaks", 0)) if isinstance(r.extra, dict) else 0
         self.seconds += float(r.seconds)
 
+    def _add_moments(self, h0: np.ndarray, weight: float) -> None:
+        """One batch's p (``h0``: its level-0 histogram divided by its photons that met) into
+        the running weighted mean and sum of squared deviations (West 1979)."""
+        g = self.ctx.grid
+        p = h0 / self._dom
+        if g.phi_invariant:
+            p = mirror_phi(p.reshape(g.n_theta_o, g.n_phi_o)).reshape(self.nb)
+        self.n_batches += 1
+        self.weight_sq_sum += weight * weight
+        total = self.weight_sum + weight
+        if total > 0:
+            delta = p - self.p_mean
+            self.p_mean += (weight / total) * delta
+            self.p_m2 += weight * delta * (p - self.p_mean)
+        self.weight_sum = total
+
     def error(self) -> float:
         """Relative L2 error of p from the spread between batches (see the module docstring)."""
-        g = self.ctx.grid
-        dom = np.repeat(g.solid_angles(), g.n_phi_o)
-        ps = np.stack([h / max(n, 1e-300) for h, n in zip(self.batch_hist, self.batch_norm)]) / dom
-        if g.phi_invariant:
-            ps = mirror_phi(ps.reshape(len(ps), g.n_theta_o, g.n_phi_o)).reshape(len(ps), self.nb)
-        w = np.asarray(self.batch_weight, dtype=np.float64)
-        w = w / w.sum()
-        mean = w @ ps
-        nB = len(ps)
-        # Variance of the weighted mean from the spread between batches.
-        var = (w @ (ps - mean) ** 2) * nB / (nB - 1) * float((w ** 2).sum())
-        den = float((dom * mean ** 2).sum())
-        return float(math.sqrt((dom * var).sum() / den)) if den > 0 else float("inf")
+        nB, W = self.n_batches, self.weight_sum
+        if nB < 2 or not W > 0:
+            return float("inf")
+        # Variance of the weighted mean from the spread between batches: the weighted variance
+        # of one batch, nB / (nB - 1) unbiased, times sum(w^2) for the normalized weights w.
+        var = (self.p_m2 / W) * nB / (nB - 1) * (self.weight_sq_sum / (W * W))
+        den = float((self._dom * self.p_mean ** 2).sum())
+        # (West's update keeps the squared deviations >= 0 up to rounding: clamp that.)
+        return float(math.sqrt(max(0.0, float((self._dom * var).sum())) / den)) if den > 0 else float("inf")
 
     def plan_more(self, n_b: int) -> None:
         """After the queued batches: queue as many more as the target error needs."""
@@ -234,7 +251,7 @@ class DirectionStatistics:
             "rows": (r0, r1),
             "H": H[:, r0:r1].astype(np.float32),
             "G": G[:, r0:r1].astype(np.float32),
-            "norm": float(sum(self.batch_weight)),
+            "norm": float(self.weight_sum),
             "photons": int(self.stats["launched"]),
             "n_hit": self.stats["n_hit"],
             "n_cut": self.stats["n_cut"],

@@ -123,9 +123,10 @@ def read_table_file(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[
 
 
 def write_table_file(path: str | os.PathLike[str], header: Mapping[str, Any],
-                     arrays: Mapping[str, np.ndarray], *, compress: bool = True) -> dict[str, Any]:
+                     arrays: Mapping[str, np.ndarray], *, compress: bool | int = True) -> dict[str, Any]:
     """Write a table atomically (zip-deflated unless ``compress`` is False: arrays that a codec
-    already compressed gain nothing); returns the header written. The container's own entries
-    of ``header`` (format, version, arrays, checksums) are recomputed."""
+    already compressed gain nothing; an int is the zlib level, as
+    :func:`usdfiber.table_format.write_table`); returns the header written. The container's
+    own entries of ``header`` (format, version, arrays, checksums) are recomputed."""
     hdr = {k: v for k, v in header.items() if k not in ("arrays", "checksums", "format", "version")}
     return table_format.write_table(path, hdr, arrays, compress=compress)
