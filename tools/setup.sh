@@ -21,7 +21,11 @@ fi
 # Reinstall only when the build inputs changed (the stamp holds their hash).
 stamp=build/.setup-stamp
 want=$(cat pyproject.toml CMakeLists.txt schema/schema.usda schema/generated/* | sha256sum | cut -c1-16)
-if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import usdfiber" >/dev/null 2>&1; then
+# (and when the installed usdfiber is another checkout's: an editable install names one tree)
+here_imported() {
+  "$PY" -c "import pathlib, sys, usdfiber; sys.exit(pathlib.Path(usdfiber.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())" >/dev/null 2>&1
+}
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! here_imported; then
   echo "usdfiber setup: pip install -e .[test]"
   "$PY" -m pip install -q --disable-pip-version-check --root-user-action=ignore -e ".[test]"
   mkdir -p build && echo "$want" > "$stamp"
