@@ -72,3 +72,17 @@ def test_state_does_not_grow_with_batches():
     for _ in range(500):
         a._add_moments(h, 1.0)
     assert held() == before
+
+
+def test_target_error_mode_stops_where_no_light_left():
+    """A direction whose batches carried no light has an infinite error estimate; in
+    target-error mode it is not given more batches (none could lower it), and nothing raises."""
+    req = requests_from_preset("silk")[0]
+    ctx = bake_context(req.profile(), req.eta, req.beta_deg, req.cuticle_scales,
+                       BakeSettings(resolution_deg=10, photons=4000, batches=4, target_error=0.01))
+    a = DirectionStatistics(ctx, 2, 0)
+    a.queue = []
+    for _ in range(4):
+        a._add_moments(np.zeros(a.nb), 0.0)
+    a.plan_more(1000)
+    assert a.err == math.inf and a.queue == []

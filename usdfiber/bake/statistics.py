@@ -229,6 +229,8 @@ class DirectionStatistics:
         b = self.next_batch
         if st.target_error is None or not (self.err > st.target_error and b * n_b < int(st.max_photons)):
             return
+        if not math.isfinite(self.err):
+            return      # no light met the fiber or left it: more of the same photons cannot help
         need = b * n_b * (self.err / float(st.target_error)) ** 2 * 1.05
         extra = int(math.ceil(need / n_b)) - b
         extra = max(1, min(extra, int(st.max_photons) // n_b - b))
