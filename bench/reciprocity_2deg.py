@@ -183,7 +183,7 @@ def count_batches(fp: dict, slices: dict[tuple[int, int], dict[str, Any]]) -> in
     counts them for the averaging), set on its slice; returns the photons per batch of ``fp``."""
     per_batch = int(fp["settings"]["photons"]) // int(fp["settings"]["batches"])
     for d in slices.values():
-        d["batches"] = max(1, round(d["photons"] / per_batch))
+        d["batches"] = d["photons"] / per_batch      # a fraction where a schedule shares a row's photons
     return per_batch
 
 
@@ -457,6 +457,18 @@ def end_to_end(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def parse_rates(spec: str, n_rows: int) -> np.ndarray:
+    """Tracer ns per photon of every row from ``LO-HI:NS,...`` (e.g. ``0-19:2538,20-44:5000``)."""
+    ns = np.full(n_rows, np.nan)
+    for part in spec.split(","):
+        span, value = part.split(":")
+        lo, hi = (int(x) for x in span.split("-"))
+        ns[lo:hi + 1] = float(value)
+    if np.isnan(ns).any():
+        raise SystemExit("--ns-per-photon must cover every row")
+    return ns
+
+
 def reschedule(args: argparse.Namespace) -> None:
     """A row schedule scaled to other targets (see the module docstring)."""
     rec = Record("reciprocity_2deg", args)
@@ -489,13 +501,7 @@ def reschedule(args: argparse.Namespace) -> None:
     out["photons_total_old"] = float(old.sum() * n_pi)
     out["photons_total_new"] = float(new.sum() * n_pi)
     if args.ns_per_photon:
-        ns = np.full(len(old), np.nan)
-        for part in args.ns_per_photon.split(","):
-            span, value = part.split(":")
-            lo, hi = (int(x) for x in span.split("-"))
-            ns[lo:hi + 1] = float(value)
-        if np.isnan(ns).any():
-            raise SystemExit("--ns-per-photon must cover every row")
+        ns = parse_rates(args.ns_per_photon, len(old))
         out["tracing_hours_old"] = float((old * n_pi * ns).sum() * 1e-9 / 3600)
         out["tracing_hours_new"] = float((new * n_pi * ns).sum() * 1e-9 / 3600)
     if args.schedule_out:
@@ -505,29 +511,49 @@ def reschedule(args: argparse.Namespace) -> None:
     print(json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=1))
 
 
+#: Seconds between two chunk writes of one group (64 stored writes take about 0.4 s) are far
+#: fewer than a group's tracing (40 s and more at 2 deg): a longer gap starts the next group.
+GROUP_WRITE_GAP = 5.0
+
+
+def when(text: str) -> float:
+    """A UTC time in ISO 8601 as seconds since the epoch."""
+    import datetime as dt
+
+    return dt.datetime.fromisoformat(text).replace(tzinfo=dt.timezone.utc).timestamp()
+
+
+def read_pauses(path: Path | None) -> list[tuple[float, float]]:
+    """The intervals a bake was stopped (SIGSTOP): a file of 'START END' lines (UTC, ISO
+    8601; '#' starts a comment line)."""
+    pauses = []
+    if path is not None:
+        for line in Path(path).read_text().splitlines():
+            if line.strip() and not line.lstrip().startswith("#"):
+                a, b = line.split()[:2]
+                pauses.append((when(a), when(b)))
+    return pauses
+
+
+def paused_within(pauses: list[tuple[float, float]], a: float, b: float) -> tuple[float, int]:
+    """Seconds of ``pauses`` inside [a, b], and how many of them fall there."""
+    return (sum(max(0.0, min(b, y) - max(a, x)) for x, y in pauses),
+            sum(1 for x, y in pauses if min(b, y) > max(a, x)))
+
+
 def wall(args: argparse.Namespace) -> None:
     """The wall time of a bake that ran as several processes (each resumed from the chunks of
     the last): each process's span (process start to its last chunk write or its end) less the
     intervals in ``--pauses`` during which the bake was stopped (SIGSTOP) so that other work
     could have the machine. Times are UTC, ISO 8601."""
-    import datetime as dt
-
-    def when(text: str) -> float:
-        return dt.datetime.fromisoformat(text).replace(tzinfo=dt.timezone.utc).timestamp()
-
-    pauses = []
-    for line in Path(args.pauses).read_text().splitlines():
-        if line.strip() and not line.lstrip().startswith("#"):
-            a, b = line.split()[:2]
-            pauses.append((when(a), when(b)))
+    pauses = read_pauses(args.pauses)
     rec = Record("reciprocity_2deg_wall", args)
     parts = []
     for start, end in args.processes:
         a, b = when(start), when(end)
         if b <= a:
             raise SystemExit(f"--process {start} {end}: the end is not after the start")
-        paused = sum(max(0.0, min(b, y) - max(a, x)) for x, y in pauses)
-        inside = sum(1 for x, y in pauses if min(b, y) > max(a, x))
+        paused, inside = paused_within(pauses, a, b)
         parts.append({"start": start, "end": end, "span_seconds": b - a, "paused_seconds": paused,
                       "pauses": inside, "seconds": b - a - paused})
     total = sum(p["seconds"] for p in parts)
@@ -657,6 +683,120 @@ def box_against_centre(args: argparse.Namespace) -> None:
     rec.finish(args.out)
 
 
+def progress(args: argparse.Namespace) -> None:
+    """A scheduled bake so far (running, stopped or finished), from its chunks alone: per
+    theta_i row, the tracer's wall time per photon (the chunks' ``seconds``) beside the rate a
+    projection assumed (``--ns-per-photon``, as ``reschedule`` takes it); the process's wall
+    from ``--start`` to its last chunk write, less ``--pauses``, split into tracing and the rest
+    (statistics and chunk writes between groups); and the schedule's remaining photons at the
+    measured rate of the last complete row, rising by rows as the projection's rates do. With
+    ``--analysis`` and ``--targets``, each complete row's error: its directions' own
+    batch-spread estimates (rms, before averaging) over the root of the analysis's averaging
+    variance ratio for that row, against the row's target (a model check of the table's error
+    before it is finished; ``end-to-end`` measures the finished table against a reference pair).
+
+    A chunk's ``seconds`` is its share of the tracer's wall, which runs on while the process is
+    stopped: a pause that falls inside a group's tracing (from the previous group's last chunk
+    write for as long as the group's seconds add up to; its statistics and chunk writes follow)
+    is taken out of that group's directions in proportion to their seconds."""
+    from usdfiber.bake.chunks import ResumeDirectory
+    from usdfiber.bake.grid import Grid
+
+    rec = Record("reciprocity_2deg_progress", args)
+    fp = json.loads(Path(args.bake, "bake.json").read_text())
+    grid = Grid.from_header(fp["grid"])
+    sched = fp["settings"].get("row_photons") or [int(fp["settings"]["photons"])] * grid.n_theta_i
+    projected = parse_rates(args.ns_per_photon, grid.n_theta_i) if args.ns_per_photon else None
+    pauses = read_pauses(args.pauses)
+    ratios = ({r["row"]: r["variance_ratio_model"] for r in json.loads(Path(args.analysis).read_text())["results"]["rows"]}
+              if args.analysis else None)
+    targets = ({r["row"]: r[args.target_key] for r in json.loads(Path(args.targets).read_text())["results"]["rows"]}
+               if args.targets else None)
+    rd = ResumeDirectory(args.bake, fp)
+    chunks = []                                  # (written, ti, seconds, photons, error)
+    for ti in range(grid.n_theta_i):
+        for pi in range(grid.n_phi_i):
+            if rd.has(ti, pi):
+                d = rd.load(ti, pi)
+                if d is None:
+                    raise SystemExit(f"{rd.chunk_path(ti, pi)}: unusable chunk (see the warning)")
+                chunks.append([rd.chunk_path(ti, pi).stat().st_mtime, ti, d["seconds"], d["photons"],
+                               d["rel_error"]])
+    if not chunks:
+        raise SystemExit(f"{args.bake}: no chunk yet")
+    chunks.sort()
+    start = when(args.start)
+    groups, prev_end, paused_in_tracing = 0, start, 0.0
+    i = 0
+    while i < len(chunks):
+        j = i + 1
+        while j < len(chunks) and chunks[j][0] - chunks[j - 1][0] < GROUP_WRITE_GAP:
+            j += 1
+        # The group's tracing: from the last group's writes for as long as its seconds say
+        # (a stop inside it is in them); its statistics and writes follow.
+        total = sum(c[2] for c in chunks[i:j])
+        paused, _ = paused_within(pauses, prev_end, min(prev_end + total, chunks[i][0]))
+        if paused > 0 and total > 0:
+            keep = max(0.0, total - paused) / total
+            for c in chunks[i:j]:
+                c[2] *= keep
+        paused_in_tracing += paused
+        groups, prev_end, i = groups + 1, chunks[j - 1][0], j
+    last_write = chunks[-1][0]
+    rows = []
+    for ti in range(grid.n_theta_i):
+        mine = [c for c in chunks if c[1] == ti]
+        if not mine:
+            continue
+        seconds, photons = sum(c[2] for c in mine), sum(c[3] for c in mine)
+        r = {"row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])), "directions": len(mine),
+             "photons_per_direction": photons / len(mine), "trace_seconds": seconds,
+             "trace_wall_ns_per_photon": 1e9 * seconds / photons}
+        if projected is not None:
+            r["projected_ns_per_photon"] = float(projected[ti])
+            r["measured_over_projected"] = r["trace_wall_ns_per_photon"] / float(projected[ti])
+        if len(mine) == grid.n_phi_i:
+            # The row's own error before averaging: its directions' batch-spread estimates
+            # (rms), the figure the averaging's variance ratio applies to.
+            r["error_unaveraged"] = float(np.sqrt(np.mean([c[4] ** 2 for c in mine])))
+            if ratios is not None:
+                r["averaged_error_model"] = r["error_unaveraged"] / math.sqrt(ratios[ti])
+            if targets is not None:
+                r["target_16m"] = targets[ti]
+                if ratios is not None:
+                    r["averaged_over_target"] = r["averaged_error_model"] / targets[ti]
+        rows.append(r)
+    paused, n_paused = paused_within(pauses, start, last_write)
+    wall_s = last_write - start - paused
+    traced_s = sum(c[2] for c in chunks)
+    complete = [r for r in rows if r["directions"] == grid.n_phi_i]
+    done = {r["row"]: r["directions"] for r in rows}
+    left_per_row = [(grid.n_phi_i - done.get(ti, 0)) * sched[ti] for ti in range(grid.n_theta_i)]
+    summary = {"rows_complete": len(complete), "rows_started": len(rows), "groups": groups,
+               "photons_traced": int(sum(c[3] for c in chunks)),
+               "photons_scheduled": int(sum(sched) * grid.n_phi_i), "photons_left": int(sum(left_per_row)),
+               "wall_seconds_to_last_chunk": wall_s, "paused_seconds": paused, "pauses": n_paused,
+               "paused_seconds_inside_tracing": paused_in_tracing,
+               "trace_seconds": traced_s, "between_groups_seconds": wall_s - traced_s}
+    if projected is not None:
+        proj_traced = sum(r["photons_per_direction"] * r["directions"] * r["projected_ns_per_photon"]
+                          for r in rows) * 1e-9
+        summary["projected_trace_seconds_of_traced"] = proj_traced
+        summary["measured_over_projected_trace"] = traced_s / proj_traced
+    if complete:
+        ref = complete[-1]
+        rise = projected / projected[ref["row"]] if projected is not None else np.ones(grid.n_theta_i)
+        summary["trace_seconds_left_estimate"] = float(
+            sum(n * ref["trace_wall_ns_per_photon"] * k for n, k in zip(left_per_row, rise)) * 1e-9)
+    aot = np.array([r["averaged_over_target"] for r in rows if "averaged_over_target" in r])
+    if len(aot):
+        summary["averaged_over_target_rms"] = float(np.sqrt(np.mean(aot ** 2)))
+        summary["averaged_over_target_max"] = float(aot.max())
+        summary["rows_over_target"] = int((aot > 1).sum())
+    print(json.dumps(summary, indent=1))
+    rec.doc["results"] = {"rows": rows, "summary": summary}
+    rec.finish(args.out)
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -670,7 +810,8 @@ def main() -> None:
     b.add_argument("--schedule", type=Path, help="an analyse result: bake each row at its 16M-photon error with "
                    "the expected value and reciprocity averaging (the end-to-end bake)")
     b.add_argument("--schedule-chunks", type=Path, help="the directory of one of the bakes that result analysed")
-    b.add_argument("--per-batch", type=int, default=16384, help="photons per batch with --schedule")
+    b.add_argument("--per-batch", type=int, default=16384,
+                   help="photons per batch with --schedule, at most (a row's photons are shared among its batches)")
     an = sub.add_parser("analyse", help="two bakes' errors with and without reciprocity, and the gain")
     an.add_argument("a", type=Path)
     an.add_argument("b", type=Path)
@@ -703,6 +844,16 @@ def main() -> None:
                     help="one process: its start and its end or last chunk write (UTC, ISO 8601)")
     wl.add_argument("--pauses", type=Path, required=True, help="a file of 'START END' lines: the bake stopped")
     wl.add_argument("--out", type=Path, required=True)
+    pg = sub.add_parser("progress", help="a scheduled bake so far: its rows' tracer rates and its wall, from its chunks")
+    pg.add_argument("bake", type=Path, help="the directory of a bake --schedule (running, stopped or finished)")
+    pg.add_argument("--start", required=True, help="when its process started (UTC, ISO 8601)")
+    pg.add_argument("--pauses", type=Path, help="a file of 'START END' lines: the bake stopped")
+    pg.add_argument("--ns-per-photon", help="the rates a projection assumed, e.g. 0-19:2538,20-44:5000")
+    pg.add_argument("--analysis", type=Path, help="the analyse result the schedule came from: its rows' averaging "
+                    "variance ratios (the model), for each complete row's error after averaging")
+    pg.add_argument("--targets", type=Path, help="full_bake_2deg.py results: each row's 16M-photon error")
+    pg.add_argument("--target-key", default="e16_unbiased", help="which of their targets (default: e16_unbiased)")
+    pg.add_argument("--out", type=Path, required=True)
     rs = sub.add_parser("reschedule", help="a row schedule scaled to other per-row targets")
     rs.add_argument("--schedule", type=Path, required=True, help="a JSON list of photons per direction of each row")
     rs.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results holding both keys")
@@ -734,6 +885,8 @@ def main() -> None:
         wall(args)
     elif args.part == "reschedule":
         reschedule(args)
+    elif args.part == "progress":
+        progress(args)
     else:
         analyse(args)
 

@@ -240,7 +240,8 @@ def _sigma_hat(t) -> np.ndarray:
 
 
 @pytest.mark.parametrize("shape,combined,scheduled", [pytest.param("ellipse", (), False, marks=pytest.mark.slow),
-                                                      ("circle", (), False), ("circle", (), True),
+                                                      ("circle", (), False), ("circle", (), "whole"),
+                                                      ("circle", (), "shared"),
                                                       ("ellipse", ("expected",), False)])
 def test_reciprocity_is_unbiased_against_plain(shape, combined, scheduled, ellipse):
     """Entry by entry, 4 independent box-filtered bakes of each (the bakes are the batches):
@@ -249,7 +250,9 @@ def test_reciprocity_is_unbiased_against_plain(shape, combined, scheduled, ellip
     (e.g. |P| / |I| left out) shifts the entries far beyond the noise. ``combined``: averaging
     the expected value's tables (against the same plain bakes), as a full 2 deg bake at the
     paper's error uses it. ``scheduled``: rows of 1x to 4x the photons (``row_photons``), so
-    that partners weigh unequally, as in a bake at each row's error target."""
+    that partners weigh unequally, as in a bake at each row's error target: "whole" batches,
+    or "shared", rows that are no whole number of batches (some fewer photons than the 4 full
+    batches), met exactly in batches of unequal photons that weigh by their photons."""
     prof = ellipse if shape == "ellipse" else profiles.circle()
     res = 30 if shape == "ellipse" else 15
     tabs = {}
@@ -257,7 +260,8 @@ def test_reciprocity_is_unbiased_against_plain(shape, combined, scheduled, ellip
     rows = None
     if scheduled:
         n_rows = BakeSettings(resolution_deg=res).grid_for(15.0, shape == "circle", False).n_theta_i
-        rows = tuple(8000 * (1 + (3 * i) // (n_rows - 1)) for i in range(n_rows))
+        k = [(3 * i) // (n_rows - 1) for i in range(n_rows)]
+        rows = tuple(8000 * (1 + j) for j in k) if scheduled == "whole" else tuple(5000 + 7777 * j for j in k)
     for est, seeds in (((), (0, 1, 2, 3)), (rec, (10, 11, 12, 13))):
         tabs[est] = [_sigma_hat(bake_table(prof, ETA, 15.0, None, BakeSettings(
             resolution_deg=res, photons=8000, batches=4, seed=s, incoming="box", estimator=est,

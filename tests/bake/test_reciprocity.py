@@ -46,7 +46,7 @@ def _dense_reference(grid: Grid, slices: Mapping[tuple[int, int], Mapping[str, A
         r0, r1 = d["rows"]
         H[ti, pi, r0:r1] = np.moveaxis(np.asarray(d["H"], dtype=np.float32), 0, -1)
         G[ti, pi, r0:r1] = np.moveaxis(np.asarray(d["G"], dtype=np.float32), 0, -1)
-        B[ti, pi] = max(1.0, round(float(d["photons"]) / float(photons_per_batch)))
+        B[ti, pi] = float(d["photons"]) / float(photons_per_batch)
         N[ti, pi] = float(d["n_hit"]) + float(d.get("misses", 0.0))
         wbar[ti, pi] = float(d["norm"]) / B[ti, pi]
     meas = np.broadcast_to(_incoming_measure(grid)[:, None], (n_ti, n_pi))

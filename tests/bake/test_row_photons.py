@@ -1,6 +1,7 @@
 """A per-row photon schedule (``BakeSettings.row_photons``): each theta_i row gets its own
-photons in whole batches, the cache key records the schedule, the cost estimate counts it
-exactly, and a schedule that does not fit the table is refused before any tracing."""
+photons exactly, shared among its batches, the cache key records the schedule, the cost
+estimate counts it exactly, and a schedule that does not fit the table is refused before any
+tracing."""
 from __future__ import annotations
 
 import math
@@ -19,7 +20,7 @@ BASE = BakeSettings(resolution_deg=15, photons=2000, batches=2)     # 1000 photo
 
 
 def _schedule(n_rows: int) -> tuple[int, ...]:
-    # Below one direction's minimum (2 batches), between batches (rounded up), whole batches.
+    # Below one direction's minimum (2 full batches), between batches, whole batches.
     pattern = (10, 2500, 6000, 1000)
     return tuple(pattern[i % len(pattern)] for i in range(n_rows))
 
@@ -32,6 +33,8 @@ def test_settings_refuse_bad_schedules():
         BakeSettings(row_photons=[1000], target_error=0.05)
     with pytest.raises(BakeError, match="auto"):
         BakeSettings(row_photons=[1000], auto_resolution=True)
+    with pytest.raises(BakeError, match="at least one photon per batch"):
+        BakeSettings(batches=4, row_photons=[1000, 3])
 
 
 def test_cache_key_records_the_schedule():
@@ -45,10 +48,27 @@ def test_cache_key_records_the_schedule():
     assert a.result_inputs() != BakeSettings().result_inputs()
 
 
-def test_rows_get_their_photons_in_whole_batches():
+def test_rows_get_their_photons_exactly_in_shared_batches():
     s = BakeSettings(photons=2000, batches=2, row_photons=[10, 2500, 6000])
     assert [s.row_batches(i) for i in range(3)] == [2, 3, 6]
-    assert BakeSettings(photons=2000, batches=2).row_batches(5) == 2
+    assert [[s.batch_photons(i, b) for b in range(s.row_batches(i))] for i in range(3)] == [
+        [5, 5], [834, 833, 833], [1000] * 6]
+    assert s.batch_photons(0, 2) == 1000            # past the row's batches: full ones
+    plain = BakeSettings(photons=2000, batches=2)
+    assert plain.row_batches(5) == 2 and plain.batch_photons(5, 0) == 1000
+
+
+def test_whole_batch_schedules_keep_their_key():
+    """A schedule of whole batches traces what it traced when rows were rounded up to whole
+    batches: the same key (chunks and cached tables stay valid). One that shares a row among
+    its batches traces other photons: another key."""
+    whole = BakeSettings(photons=2000, batches=2, row_photons=[2000, 6000])
+    assert whole.whole_batch_schedule() and "row_batches" not in whole.result_inputs()
+    for rows in ([2000, 2500], [1000, 6000]):       # a partial batch; fewer than 2 full batches
+        shared = BakeSettings(photons=2000, batches=2, row_photons=rows)
+        assert not shared.whole_batch_schedule()
+        assert shared.result_inputs()["row_batches"] == "shared"
+        assert shared.result_inputs() != BakeSettings(photons=2000, batches=2, row_photons=[2000, 6000]).result_inputs()
 
 
 def test_schedule_of_another_grid_is_refused_before_tracing(monkeypatch):
@@ -66,8 +86,9 @@ def test_schedule_of_another_grid_is_refused_before_tracing(monkeypatch):
 
 
 def test_scheduled_bake_and_its_exact_estimate(tmp_path, monkeypatch):
-    """Every direction of row ``ti`` traces ``row_batches(ti)`` batches; the estimate's photons
-    and tracer launches are those of the real bake (launches counted at the tracer)."""
+    """Every direction of row ``ti`` traces its row's photons exactly, in ``row_batches(ti)``
+    batches; the estimate's photons and tracer launches are those of the real bake (launches
+    counted at the tracer)."""
     from dataclasses import replace
 
     req = requests_from_preset("silk")[1]
@@ -84,7 +105,7 @@ def test_scheduled_bake_and_its_exact_estimate(tmp_path, monkeypatch):
     monkeypatch.setattr(tracer, "trace_many", counted)
     table = bake_request(req, st)
     photons = np.asarray(table.arrays["photons"]).reshape(grid.n_theta_i, grid.n_phi_i)
-    want = np.array([st.row_batches(ti) * st.photons_per_batch for ti in range(grid.n_theta_i)])
+    want = np.array(st.row_photons)
     assert np.array_equal(photons, np.broadcast_to(want[:, None], photons.shape))
     assert est.photons == int(table.header["photons"]["total"]) == int(photons.sum())
     assert est.launches == len(launches)
@@ -126,3 +147,24 @@ def test_bake_command_row_photons(tmp_path):
         assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
         assert "--row-photons" in out.stderr
     assert not list((tmp_path / "c").glob("tables/*.npz"))
+
+
+def test_shared_batches_weigh_by_their_photons():
+    """A box-filtered direction's batches weigh by the power their beam carries, in proportion
+    to their photons: its ``norm`` (the sum of its batches' weights) is the bin's power times
+    its photons in full batches, whether the row is whole batches or shared unevenly. The
+    reciprocity averaging rescales partners by exactly that (photons / photons_per_batch); a
+    weight per batch regardless of its photons would mis-scale every row that is no whole
+    number of batches."""
+    from usdfiber.bake.baker import bake_context, trace_directions
+    from usdfiber.bake.statistics import DirectionStatistics
+
+    req = requests_from_preset("silk")[0]
+    st = BakeSettings(resolution_deg=30, photons=2000, batches=2, incoming="box", row_photons=(1500, 2500, 4000))
+    ctx = bake_context(req.profile(), req.eta, req.beta_deg, None, st)
+    dirs = [(0, 0), (1, 3), (2, 5)]
+    for (ti, pi), d in zip(dirs, trace_directions(ctx, dirs)):
+        assert d["photons"] == st.row_photons[ti]
+        power = DirectionStatistics(ctx, ti, pi).box_weight
+        assert d["norm"] == pytest.approx(power * st.row_photons[ti] / st.photons_per_batch, rel=1e-12)
+        assert math.isfinite(d["rel_error"]) and d["rel_error"] > 0

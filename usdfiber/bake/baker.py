@@ -171,7 +171,7 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
     from usdfiber.bake import tracer
 
     st = ctx.settings
-    n_b = st.photons_per_batch
+    n_b = st.photons_per_batch          # target-error mode plans its further batches in these
     accs = [DirectionStatistics(ctx, ti, pi) for ti, pi in dirs]
     node = {id(a): d for a, d in zip(accs, dirs)}
     sampler = "sobol" if "stratified" in st.estimator else "independent"
@@ -190,7 +190,9 @@ def trace_directions(ctx: BakeContext, dirs: list[tuple[int, int]]) -> list[dict
             seeds = [stream_seed(st.seed, b, *node[id(a)]) for a, b in batch]
         else:
             seeds = [batch_seed(st.seed, b) for _, b in batch]
-        res = tracer.trace_many(ctx.fs, subs, n_b, eta=ctx.eta, beta_deg=ctx.beta_deg,
+        # A schedule's rows share their photons among their batches (BakeSettings.batch_photons).
+        photons = [st.batch_photons(node[id(a)][0], b) for a, b in batch]
+        res = tracer.trace_many(ctx.fs, subs, photons, eta=ctx.eta, beta_deg=ctx.beta_deg,
                                 max_bounces=int(st.max_bounces), seed=seeds,
                                 cuticle=ctx.cuticle, batch=GROUP_PHOTONS, sampler=sampler, split=split,
                                 expected=expected, histogram=hist,

@@ -366,7 +366,7 @@ def estimate(request: Any, settings: BakeSettings, measured: Probe, key: str = "
         settings.check_rows(grid)
         dirs = table_directions(request, settings)
         nb = [settings.row_batches(ti) for ti, _ in dirs]
-        photons = sum(nb) * n_b
+        photons = sum(settings.row_photons[ti] for ti, _ in dirs)     # met exactly (batch_photons)
         per_dir = int(round(photons / max(1, n_dirs)))
         launches = sum(max(nb[g:g + group]) for g in range(0, len(nb), group))
     # Every launch costs its fixed time, every photon the probe's rate (module docstring).

@@ -196,7 +196,8 @@ class ReciprocalAverage:
     The directions of ``grid`` go in one at a time (:meth:`add`, each read once), are
     averaged together (:meth:`finish`) and come out one at a time (:meth:`source`, what
     :func:`usdfiber.bake.assembly.assemble` reads); ``n_levels`` absorption levels,
-    ``photons_per_batch`` photons per batch (a direction's batches are its photons over it).
+    ``photons_per_batch`` photons per full batch (a direction's batches are its photons over it,
+    a fraction where a schedule shares a row's photons among its batches).
     Their H and G wait in two float32 files laid out (level, direction, row, column) in a
     directory made inside ``scratch`` (None: the system's temporary directory), so only one
     level of every direction is in memory at a time (2 deg: 0.5 GB per array, against 5.8 GB
@@ -272,7 +273,9 @@ class ReciprocalAverage:
         for k in range(K):
             _write(self._files["H"], H[k], self._offset(k, d, r0))
             _write(self._files["G"], G[k], self._offset(k, d, r0))
-        self._batches[d] = max(1.0, round(float(data["photons"]) / float(self.photons_per_batch)))
+        # The direction's photons in batches (a schedule's last batch may be partial: its
+        # sums weigh by its photons, statistics.py), the scale of its sums.
+        self._batches[d] = float(data["photons"]) / float(self.photons_per_batch)
         self._hit[d] = float(data["n_hit"]) + float(data.get("misses", 0.0))
         self._wbar[d] = float(data["norm"]) / self._batches[d]
         self._meta[d] = {key: value for key, value in data.items() if key not in ("H", "G")}

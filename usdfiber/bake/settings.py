@@ -109,7 +109,10 @@ class BakeSettings:
     scales one stratified point per batch), so that each entry averages over both bins and
     the table is reciprocal bin for bin. ``estimator``:
     the variance-reduction estimators used (names from :data:`ESTIMATORS`; empty: the plain
-    estimator, whose tables and cache keys do not mention it).
+    estimator, whose tables and cache keys do not mention it). ``row_photons``: photons per
+    incoming direction of each theta_i row (a schedule, e.g. each row at its own error
+    target), met exactly, in :meth:`row_batches` batches of at most ``photons / batches``
+    (:meth:`batch_photons`).
     """
 
     resolution_deg: float = 2.0
@@ -231,6 +234,9 @@ class BakeSettings:
             if self.target_error is not None or auto:
                 # Both choose the photons or the rows themselves.
                 raise BakeError("row_photons cannot be combined with a target error or resolution 'auto'")
+            if min(canon) < int(self.batches):
+                raise BakeError(f"row_photons must give every row at least one photon per batch "
+                                f"({self.batches} batches), got {min(canon)}")
             object.__setattr__(self, "row_photons", tuple(canon))
         if self.incoming == "box" and (auto or self.incoming_deg is not None):
             # A box node spreads its light over one outgoing bin's solid angle, not a coarser cell.
@@ -254,10 +260,34 @@ class BakeSettings:
 
     def row_batches(self, ti: int) -> int:
         """Batches a direction of theta_i row ``ti`` is first given: ``batches``, or with
-        ``row_photons`` the row's photons in whole batches (at least ``batches``)."""
+        ``row_photons`` as many as hold the row's photons at ``photons_per_batch`` at most (at
+        least ``batches``)."""
         if self.row_photons is None:
             return int(self.batches)
         return max(int(self.batches), int(math.ceil(self.row_photons[ti] / self.photons_per_batch)))
+
+    def batch_photons(self, ti: int, b: int) -> int:
+        """Photons of batch ``b`` of a direction of theta_i row ``ti``: ``photons_per_batch``,
+        or with ``row_photons`` the row's photons exactly, shared as evenly as whole photons
+        allow among its :meth:`row_batches` (the first ``N mod B`` one more). A schedule is
+        then met to the photon while each batch holds up to ``photons_per_batch``: large
+        batches cost less per photon (each batch of a direction pays for its own histograms,
+        bench/REPORT.md, section 7), and a row need not be rounded up to whole batches.
+        Batches past the row's (more in target-error mode, which has no schedule) are full."""
+        if self.row_photons is None:
+            return self.photons_per_batch
+        n, nb = self.row_photons[ti], self.row_batches(ti)
+        if b >= nb:
+            return self.photons_per_batch
+        return n // nb + (1 if b < n % nb else 0)
+
+    def whole_batch_schedule(self) -> bool:
+        """Whether every row of ``row_photons`` is whole batches of ``photons_per_batch`` (at
+        least ``batches`` of them): the photons such a schedule gives are the same whether rows
+        are shared evenly (:meth:`batch_photons`) or rounded up to whole batches, as they were
+        before batches could be shared."""
+        per, nb = self.photons_per_batch, int(self.batches)
+        return all(n % per == 0 and n >= nb * per for n in (self.row_photons or ()))
 
     def check_rows(self, grid: Grid) -> None:
         """Refuse a ``row_photons`` schedule that is not one entry per theta_i row of ``grid``."""
@@ -319,6 +349,10 @@ class BakeSettings:
             d.pop("row_photons")  # no schedule: keys of tables baked before it existed
         else:
             d["row_photons"] = list(self.row_photons)
+            if not self.whole_batch_schedule():
+                # Rows met to the photon in shared batches, where they used to be rounded up to
+                # whole batches: other photons than a table of the same schedule baked before.
+                d["row_batches"] = "shared"
         d["builtin_profile_vertices"] = BUILTIN_PROFILE_VERTICES
         d["baker_version"] = BAKER_VERSION
         return d

@@ -175,14 +175,18 @@ class DirectionStatistics:
             h[:, fwd] += miss
             self.stats["misses"] += miss
         # Each batch weighs as the power its beam carries: photons that met the fiber for a
-        # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin.
+        # fixed direction; W(phi) cos(theta) per unit irradiance for the points of a bin, in
+        # proportion to its photons (a schedule's batches share a row's photons: they need
+        # not all be photons_per_batch; a full batch weighs exactly as before).
         box = ctx.settings.incoming == "box"
         if not box:
             weight = norm
-        elif self.spread is not None:
-            weight = self.box_weight
         else:
-            weight = ctx.env_width(ph_b) * math.cos(th_b)
+            share = r.n_launched / ctx.settings.photons_per_batch
+            if self.spread is not None:
+                weight = self.box_weight * share
+            else:
+                weight = ctx.env_width(ph_b) * math.cos(th_b) * share
         scale = weight / norm if norm > 0 else 0.0
         self._add_moments(h[0] / max(norm, 1e-300), weight)
         # Scaled in place (h and gl are this batch's own): no megabyte temporaries per batch.

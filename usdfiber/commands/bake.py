@@ -62,8 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--row-photons", type=_row_photons, default=None, metavar="N,N,...|FILE.json",
                    help="photons per incoming direction of each theta_i row of the grid (a schedule that "
                         "meets each row's error target, e.g. with --estimator expected,reciprocity; "
-                        "rounded up to whole batches of --photons / --batches): numbers separated by "
-                        "commas, or a JSON file holding a list")
+                        "met exactly, in batches of at most --photons / --batches, at least "
+                        "--batches of them): numbers separated by commas, or a JSON file holding a list")
     p.add_argument("--target-error", type=positive_float, default=None, metavar="E",
                    help="trace each direction until the relative L2 error of p is below E "
                         "(e.g. 0.01)")
