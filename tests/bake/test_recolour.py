@@ -212,6 +212,38 @@ def test_packet_sizes_give_the_same_values(monkeypatch, G):
     np.testing.assert_array_equal(kernel_mod.recolour_basis(basis, coef, args[3]), one[1])
 
 
+def _placed(a: np.ndarray, offset: int) -> np.ndarray:
+    """A C-contiguous copy of ``a`` whose data starts ``offset`` bytes after a 64-byte boundary."""
+    raw = np.empty(a.nbytes + 128, dtype=np.uint8)
+    skip = (-raw.ctypes.data) % 64 + offset
+    out = raw[skip:skip + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def test_launches_do_not_depend_on_where_the_arrays_start(monkeypatch):
+    """p and Lbar start where their allocations put them, each launch of 7 directions a view
+    into them. Read as they were, launches after the first gave wrong values on an AVX-512 Xeon
+    where p started on a 32-byte boundary and Lbar elsewhere (by the allocator's chance: the
+    test below and the compression tests failed in some processes); Lbar is now read from the
+    same place of a cache line as p. Every start of each, within a line, in one launch and in
+    several."""
+    t = synthetic(10)
+    p, lb, scale, dom, levels = flat_args(t)
+    n, K, B, n_po = p.shape
+    sig = (0.3, 5.0, 90.0)
+    ref = np.stack([reference_p(p, lb, scale, dom, levels, s)[..., 0] for s in sig], axis=-1)
+    for p_at in (0, 16, 32, 48):
+        for l_at in (0, 16, 32, 48):
+            args = (_placed(p, p_at), _placed(lb, l_at), scale, dom, levels)
+            monkeypatch.setattr(kernel_mod, "_MAX_ELEMENTS", 1 << 31)
+            whole = kernel_mod.recolour_p(*args, sig).copy()
+            assert_same(whole, ref, f"one launch, p at {p_at}, Lbar at {l_at}")
+            monkeypatch.setattr(kernel_mod, "_MAX_ELEMENTS", 7 * K * B * n_po)
+            np.testing.assert_array_equal(kernel_mod.recolour_p(*args, sig), whole,
+                                          err_msg=f"launches, p at {p_at}, Lbar at {l_at}")
+
+
 def test_a_result_beyond_one_array_is_written_launch_by_launch(monkeypatch):
     """A result longer than one Dr.Jit array is normalized launch by launch and copied into
     place: the same table as one array written by several launches, and as one launch."""

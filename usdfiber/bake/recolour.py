@@ -115,6 +115,13 @@ def recolour_p(p: np.ndarray, lbar: np.ndarray, level_scale: np.ndarray, domega:
     out = _Output(dr, len(chans), n_dir, B, n_po, domega)
     # (Four bins per lane run about 7% faster than two on a 2 deg table but take about 0.3 s
     # longer to compile: once per combination of channel kinds, cached on disk by Dr.Jit.)
+    # Lbar read where p's packets are read: in the same place of a cache line as p (a copy where
+    # not). The kernel's packet reads gave wrong values on an AVX-512 Xeon where p started on a
+    # 32-byte boundary and Lbar elsewhere; arrays of the same phase read right wherever they start
+    # (tests/bake/test_recolour.py places both at every start). A table's arrays, allocated
+    # alike, have the same phase: no copy.
+    p = np.ascontiguousarray(p)
+    lbar = _same_phase(np.ascontiguousarray(lbar), p)
     G = _packet(B * n_po, p, lbar)
     per = max(1, _MAX_ELEMENTS // (max(K, len(chans)) * B * n_po))
     for d0 in range(0, n_dir, per):
@@ -184,6 +191,19 @@ def _per_direction(dr, x: np.ndarray, d) -> list:
         v = dr.gather(ArrayXf, src, d * P + i, shape=(8, dr.width(d)))
         cols += [v[j] for j in range(8)]
     return cols[:m]
+
+
+def _same_phase(a: np.ndarray, like: np.ndarray, line: int = 64) -> np.ndarray:
+    """``a`` (C-contiguous) itself where its data starts at the same offset within a ``line``
+    of bytes as ``like``'s, else a copy that does."""
+    want = like.ctypes.data % line
+    if a.ctypes.data % line == want:
+        return a
+    raw = np.empty(a.nbytes + 2 * line, dtype=np.uint8)
+    skip = (want - raw.ctypes.data) % line
+    out = raw[skip:skip + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
 
 
 def _aligned_zeros(size: int, align: int) -> np.ndarray:
