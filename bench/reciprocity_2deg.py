@@ -525,14 +525,21 @@ def when(text: str) -> float:
 
 def read_pauses(path: Path | None) -> list[tuple[float, float]]:
     """The intervals a bake was stopped (SIGSTOP): a file of 'START END' lines (UTC, ISO
-    8601; '#' starts a comment line)."""
-    pauses = []
+    8601; '#' starts a comment line), merged where they overlap (a stop inside another is
+    counted once)."""
+    pauses: list[tuple[float, float]] = []
     if path is not None:
         for line in Path(path).read_text().splitlines():
             if line.strip() and not line.lstrip().startswith("#"):
                 a, b = line.split()[:2]
                 pauses.append((when(a), when(b)))
-    return pauses
+    merged: list[tuple[float, float]] = []
+    for a, b in sorted(pauses):
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
 
 
 def paused_within(pauses: list[tuple[float, float]], a: float, b: float) -> tuple[float, int]:
