@@ -37,6 +37,11 @@ photons, and the averaged error the model's averaging ratio then gives against t
 ``wall``: the bake's wall time when it ran as several processes, each resumed from the last's
 chunks, less the intervals it was stopped (SIGSTOP) so that other work could have the machine.
 
+``progress``: a scheduled bake so far (running, stopped or finished), from its chunks alone:
+each row's tracer rate (stops taken out of the group they fell in), the wall to its last chunk
+less the stops, each complete row's error by the model (its directions' batch-spread estimates
+over the analysis's averaging ratio) and the tracing left.
+
 ``reschedule``: a row schedule moved to other targets: each row's photons scaled by (old
 target / new target)^2 and rounded to whole batches (``--rounding nearest`` by default: the old
 schedule's rows were already rounded up once, and rounding up again adds about 2.5 % of
