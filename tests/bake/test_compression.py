@@ -46,10 +46,8 @@ def test_round_trip_within_bound(silk_table, compressed):
     for s in SIGMAS:
         err = rel_l2(c, c.recolour(s).p[..., 0], silk_table.recolour(s).p[..., 0])
         assert err.max() <= BOUND, (s, err.max())
-    # Smaller in memory than the levels it replaces. (Not by a set factor: the rank that meets
-    # the bound follows the fixture's noise, whose photons differ between CPUs; this 12k-photon
-    # table needs rank 5 on some and 6 on others, against 11 levels.)
-    assert c.arrays["basis"].nbytes < silk_table.arrays["p"].nbytes + silk_table.arrays["lbar"].nbytes
+    # Smaller in memory than the levels it replaces, and (recolourable) on disk.
+    assert c.arrays["basis"].nbytes < 0.5 * (silk_table.arrays["p"].nbytes + silk_table.arrays["lbar"].nbytes)
     assert np.array_equal(c.arrays["albedo"], silk_table.arrays["albedo"])
 
 
