@@ -146,6 +146,9 @@ def test_bake_command_row_photons(tmp_path):
         out = _cli(*base, "--row-photons", bad)
         assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
         assert "--row-photons" in out.stderr
+    few = _cli(*base, "--row-photons", "1000,1,3000")          # fewer photons than batches (2)
+    assert few.returncode == 2 and len(few.stderr.strip().splitlines()) == 1, few.stderr
+    assert "row_photons" in few.stderr and "one photon per batch" in few.stderr
     assert not list((tmp_path / "c").glob("tables/*.npz"))
 
 

@@ -38,7 +38,7 @@ reference and the fallback where Dr.Jit has no LLVM backend.
 from __future__ import annotations
 
 import functools
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -193,24 +193,32 @@ def _per_direction(dr, x: np.ndarray, d) -> list:
     return cols[:m]
 
 
+def _empty_at(shape: tuple[int, ...], dtype: Any, phase: int, line: int) -> np.ndarray:
+    """An uninitialized C-contiguous array whose data starts ``phase`` bytes past a boundary of
+    ``line`` bytes."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    raw = np.empty(nbytes + line, dtype=np.uint8)
+    skip = (phase - raw.ctypes.data) % line
+    return raw[skip:skip + nbytes].view(dtype).reshape(shape)
+
+
 def _same_phase(a: np.ndarray, like: np.ndarray, line: int = 64) -> np.ndarray:
     """``a`` (C-contiguous) itself where its data starts at the same offset within a ``line``
     of bytes as ``like``'s, else a copy that does."""
     want = like.ctypes.data % line
     if a.ctypes.data % line == want:
         return a
-    raw = np.empty(a.nbytes + 2 * line, dtype=np.uint8)
-    skip = (want - raw.ctypes.data) % line
-    out = raw[skip:skip + a.nbytes].view(a.dtype).reshape(a.shape)
+    out = _empty_at(a.shape, a.dtype, want, line)
     out[...] = a
     return out
 
 
 def _aligned_zeros(size: int, align: int) -> np.ndarray:
     """A float32 array of zeros whose data starts on an ``align``-byte boundary."""
-    raw = np.zeros(size + align // 4, dtype=np.float32)
-    skip = (-raw.ctypes.data % align) // 4
-    return raw[skip:skip + size]
+    out = _empty_at((size,), np.float32, 0, align)
+    out[...] = 0.0
+    return out
 
 
 def _packet(BP: int, *arrays: np.ndarray) -> int:
