@@ -346,6 +346,20 @@ def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
     return F(dr.select(vertical, dr.select(wz > 0.0, 0.0, -1.0), lam))
 
 
+def _height_cdf(dr: Any, hr: Any) -> Any:
+    """C1(h) = (h + 1) / 2: the share of the microsurface's uniform heights below ``hr``."""
+    return dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
+
+
+def _leave_probability(dr: Any, F: Any, wz: Any, c1: Any, log_c1: Any, alpha: Any, lam: Any = None) -> Any:
+    """:func:`_escape_probability` of a direction of local cosine ``wz`` from a height given
+    by its C1 and log C1 (``log(max(C1, 1e-30))``, which many directions from one height share)."""
+    if lam is None:
+        lam = _beckmann_lambda(dr, F, wz, alpha)
+    g1 = dr.select((wz > 0.0) & (c1 > 0.0), dr.exp(lam * log_c1), 0.0)
+    return F(dr.select(wz > 0.9999, 1.0, g1))
+
+
 def _escape_probability(dr: Any, F: Any, wr: Any, hr: Any, alpha: Any) -> tuple[Any, Any]:
     """Probability that the next height step of a walk at height ``hr`` travelling along ``wr``
     (mirrored local frame) leaves the microsurface: G1 = C1(h)^Lambda(wr) for an upward ray
@@ -353,10 +367,8 @@ def _escape_probability(dr: Any, F: Any, wr: Any, hr: Any, alpha: Any) -> tuple[
     Returns (probability, Lambda, C1), the last two for :func:`_height_step`.
     """
     lam = _beckmann_lambda(dr, F, wr.z, alpha)
-    c1 = dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
-    up = wr.z > 0.0
-    g1 = dr.select(up & (c1 > 0.0), dr.exp(lam * dr.log(dr.maximum(c1, 1e-30))), 0.0)
-    return F(dr.select(wr.z > 0.9999, 1.0, g1)), lam, c1
+    c1 = _height_cdf(dr, hr)
+    return _leave_probability(dr, F, wr.z, c1, dr.log(dr.maximum(c1, 1e-30)), alpha, lam), lam, c1
 
 
 def _height_step(dr: Any, F: Any, wr: Any, hr: Any, u: Any, alpha: Any) -> tuple[Any, Any]:
@@ -637,14 +649,19 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         alpha2_o = dr.opaque(F, float(max(alpha, 1e-4)) ** 2)
         ev_events, ev_normals = dr.zeros(U, hist_n), dr.zeros(U, hist_n)
 
-    def deposit_expected(hb: Any, L: Any, mask: Any, d: Any, wt: Any, att: list) -> None:
+    def deposit_expected(hb: Any, mask: Any, d: Any, wt: Any, att: list, exact_rows: bool = True) -> None:
         """Histogram an exit of weight ``wt`` along ``d`` (lanes ``mask``; ``hb``: their direction
-        in the launch's histograms, ``L``: their path length) at every absorption level (``att``:
-        exp(-sigma_k L)): weight and weight x L of its bin, as
+        in the launch's histograms) at every absorption level (``att``: :func:`attenuation` of
+        their path length L): weight and weight x L of its bin, as
         :meth:`usdfiber.bake.grid.Grid.bin_index` bins it."""
         # theta_o in float64, as numpy bins: a smooth extruded fiber sends all its light to
         # theta_o = -theta_i, which may lie on a bin edge (float32 could pick the other row).
-        th = dr.asin(dr.clip(mi.Float64(d.z), -1.0, 1.0))
+        # A rough exit's direction is continuous: a float32 arcsine differs from numpy's row
+        # only within an ulp of an edge, a set of no measure, and costs less.
+        if exact_rows:
+            th = dr.asin(dr.clip(mi.Float64(d.z), -1.0, 1.0))
+        else:
+            th = mi.Float64(dr.asin(dr.clip(d.z, -1.0, 1.0)))
         ph = dr.atan2(d.y, d.x)
         ph = dr.select(ph < 0.0, ph + 2.0 * math.pi, ph)
         row = U(dr.clip(dr.floor((th + 0.5 * math.pi) * step_inv64), 0.0, 1e9))
@@ -654,10 +671,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         # Bin-major: a deposit's 2 x levels values share a few cache lines (level-major, each
         # add was a cache miss of its own: 2.2x the deposit kernel's time at 11 levels).
         cell = hb * nbin + row * nph_o + col
-        vals = []
-        for k in range(nlev):
-            wk = wt * att[k]
-            vals += [mi.Float64(wk), mi.Float64(wk * L)]
+        wt64 = mi.Float64(wt)
+        vals = [wt64 * a for a in att]
         if not packets:
             for i, v in enumerate(vals):
                 dr.scatter_reduce(dr.ReduceOp.Add, hist, v, cell * (pk_n * pk_g) + i, mask, mode=hist_mode)
@@ -668,8 +683,14 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                               mode=hist_mode)
 
     def attenuation(L: Any) -> list:
-        """exp(-sigma_k L) of every level, once per event."""
-        return [dr.exp(-lev * L) for lev in lev_o]
+        """exp(-sigma_k L) and L exp(-sigma_k L) of every level, in float64, once per event: a
+        deposit multiplies them by its weight (one conversion, not two per level)."""
+        L64 = mi.Float64(L)
+        out = []
+        for lev in lev_o:
+            a = mi.Float64(dr.exp(-lev * L))
+            out += [a, a * L64]
+        return out
 
     #: Rough outer events waiting for their expected exits (written by the loop, read between
     #: phases): fields of the state an event needs, one row per event.
@@ -849,25 +870,32 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             # The visible density over D(m) cos(theta_m), without its <wi, m>+ / cos(theta_m):
             # G1(wi) / cos(theta_i) (finite at grazing wi, where G1 falls like cos(theta_i)).
             vis_w = inv_ev / ((1.0 + _beckmann_lambda(dr, F, wi.z, alpha_o)) * dr.maximum(wi.z, 1e-12))
+            # phi_m = 2 pi (r2 + c_j): one sincos per event, each normal's by the angle sum.
+            s_r2, c_r2 = dr.sincos((2.0 * math.pi) * e["r2"])
+        # The exits leave from the event's height: its C1 and log C1 once per event.
+        c1_out = _height_cdf(dr, e["h"])
+        log_c1_out = dr.log(dr.maximum(c1_out, 1e-30))
         for j in range(kn):
             u1 = e["r1"] + j * (1.0 / kn)
-            u2 = e["r2"] + ((j * lat_a) % kn) * (1.0 / kn)
             u1 = dr.select(u1 >= 1.0, u1 - 1.0, u1)
-            u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
             if ndf_normals:
                 # D(m) cos(theta_m) by inversion: tan^2(theta_m) = -alpha^2 ln(1 - u1), phi_m = 2 pi u2.
                 cos_m = dr.rsqrt(dr.fma(-alpha2_o, dr.log(1.0 - u1), 1.0))
                 sin_m = dr.sqrt(dr.maximum(dr.fma(-cos_m, cos_m, 1.0), 0.0))
-                s_phi, c_phi = dr.sincos((2.0 * math.pi) * u2)
+                a_j = 2.0 * math.pi * ((j * lat_a) % kn) / kn
+                s_phi = dr.fma(s_r2, math.cos(a_j), c_r2 * math.sin(a_j))
+                c_phi = dr.fma(c_r2, math.cos(a_j), -s_r2 * math.sin(a_j))
                 m = V3(sin_m * c_phi, sin_m * s_phi, cos_m)
                 w_m = vis_w * dr.maximum(dr.dot(wi, m), 0.0) / cos_m
             else:
+                u2 = e["r2"] + ((j * lat_a) % kn) * (1.0 / kn)
+                u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
                 m, _ = distr.sample(wi, mi.Point2f(u1, u2))
                 w_m = inv_ev
             F_r, wo_r, wo_t = fresnel_branches(wi, V3(m), into)
             wo = V3(dr.normalize(dr.select(into, wo_r, wo_t)))
             p_side = dr.select(into, F_r, 1.0 - F_r)
-            g, _, _ = _escape_probability(dr, F, dr.select(into, wo, -wo), e["h"], alpha_o)
+            g = _leave_probability(dr, F, dr.select(into, wo, -wo).z, c1_out, log_c1_out, alpha_o)
             d_out, p_out = settle(V3(frame.to_world(wo * sg)), ngs, p_ev, above_out)
             wt = e["w"] * p_side * g * w_m
             live = valid & (wt > 0.0)
@@ -876,7 +904,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 # (Planes spread over the slab, one per normal, as the real rays' random ones.)
                 zr = zs_o * ((j + 0.5) / kn - 0.5)
                 live = hull & live | escapes_from(p_out, d_out, ~hull & live, zr)
-            deposit_expected(e["hb"], e["L"], live, d_out, wt, att)
+            deposit_expected(e["hb"], live, d_out, wt, att, exact_rows=False)
 
     def expected_smooth(s: dict, elig: Any, d: Any, nm: Any, inside: Any, rng: Any) -> tuple[Any, Any, Any]:
         """Expected value at a smooth outer boundary (lanes ``elig``): the branch that ends
@@ -888,7 +916,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         wo_r, wo_t = V3(dr.normalize(wo_r)), V3(dr.normalize(wo_t))
         p_out = dr.select(inside, 1.0 - F_r, F_r)
         d_out, _ = settle(dr.select(inside, wo_t, wo_r), s["ngs"], s["p"], ~inside)
-        deposit_expected(dr.gather(U, hist_beam, s["idx"]), s["L"], elig & (p_out > 0.0), d_out, s["w"] * p_out,
+        deposit_expected(dr.gather(U, hist_beam, s["idx"]), elig & (p_out > 0.0), d_out, s["w"] * p_out,
                          attenuation(s["L"]))
         w = s["w"] * (1.0 - p_out)
         q = dr.minimum(w * (1.0 / _RR_WEIGHT), 1.0)
