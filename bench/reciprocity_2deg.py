@@ -435,7 +435,9 @@ def end_to_end(args: argparse.Namespace) -> None:
     e2 = three_way_error2(hN, hA, hB, dom)
     d_ab = 2 * rel_error2(hA, hB, dom)
     plain = json.loads(Path(args.targets).read_text())["results"]["rows"]
-    e16 = np.array([r["e16"] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
+    if any(args.target_key not in r for r in plain):
+        raise SystemExit(f"{args.targets} has no {args.target_key!r} target for every row")
+    e16 = np.array([r[args.target_key] ** 2 for r in sorted(plain, key=lambda r: r["row"])])
     for ti in range(grid.n_theta_i):
         out_rows.append({"row": ti, "theta_i_deg": float(np.degrees(grid.theta_i_nodes()[ti])),
                          "photons_per_direction": float(photons[ti].mean()),
@@ -840,6 +842,8 @@ def main() -> None:
     ee.add_argument("a", type=Path, help="one of the two bakes the schedule's analysis compared")
     ee.add_argument("b", type=Path, help="the other")
     ee.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results: each row's 16M-photon error")
+    ee.add_argument("--target-key", default="e16_unbiased",
+                    help="which of their targets (default: e16_unbiased; e16: the former, stricter ones)")
     ee.add_argument("--out", type=Path, help="required unless --pair-only")
     ee.add_argument("--pair-cache", type=Path, help="an .npz keeping the averaged pair between runs")
     ee.add_argument("--pair-only", action="store_true", help="only fill --pair-cache (before the bake ends)")
