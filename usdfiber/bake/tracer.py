@@ -346,14 +346,16 @@ def _beckmann_lambda(dr: Any, F: Any, wz: Any, alpha: Any) -> Any:
     return F(dr.select(vertical, dr.select(wz > 0.0, 0.0, -1.0), lam))
 
 
-def _height_cdf(dr: Any, hr: Any) -> Any:
-    """C1(h) = (h + 1) / 2: the share of the microsurface's uniform heights below ``hr``."""
-    return dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
+def _height_cdf(dr: Any, hr: Any) -> tuple[Any, Any]:
+    """C1(h) = (h + 1) / 2, the share of the microsurface's uniform heights below ``hr``, and
+    log(max(C1, 1e-30)), which every direction leaving from that height shares."""
+    c1 = dr.clip(0.5 * (hr + 1.0), 0.0, 1.0)
+    return c1, dr.log(dr.maximum(c1, 1e-30))
 
 
 def _leave_probability(dr: Any, F: Any, wz: Any, c1: Any, log_c1: Any, alpha: Any, lam: Any = None) -> Any:
     """:func:`_escape_probability` of a direction of local cosine ``wz`` from a height given
-    by its C1 and log C1 (``log(max(C1, 1e-30))``, which many directions from one height share)."""
+    by its :func:`_height_cdf` ``c1`` and ``log_c1``."""
     if lam is None:
         lam = _beckmann_lambda(dr, F, wz, alpha)
     g1 = dr.select((wz > 0.0) & (c1 > 0.0), dr.exp(lam * log_c1), 0.0)
@@ -367,8 +369,8 @@ def _escape_probability(dr: Any, F: Any, wr: Any, hr: Any, alpha: Any) -> tuple[
     Returns (probability, Lambda, C1), the last two for :func:`_height_step`.
     """
     lam = _beckmann_lambda(dr, F, wr.z, alpha)
-    c1 = _height_cdf(dr, hr)
-    return _leave_probability(dr, F, wr.z, c1, dr.log(dr.maximum(c1, 1e-30)), alpha, lam), lam, c1
+    c1, log_c1 = _height_cdf(dr, hr)
+    return _leave_probability(dr, F, wr.z, c1, log_c1, alpha, lam), lam, c1
 
 
 def _height_step(dr: Any, F: Any, wr: Any, hr: Any, u: Any, alpha: Any) -> tuple[Any, Any]:
@@ -873,22 +875,22 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             # phi_m = 2 pi (r2 + c_j): one sincos per event, each normal's by the angle sum.
             s_r2, c_r2 = dr.sincos((2.0 * math.pi) * e["r2"])
         # The exits leave from the event's height: its C1 and log C1 once per event.
-        c1_out = _height_cdf(dr, e["h"])
-        log_c1_out = dr.log(dr.maximum(c1_out, 1e-30))
+        c1_out, log_c1_out = _height_cdf(dr, e["h"])
         for j in range(kn):
             u1 = e["r1"] + j * (1.0 / kn)
             u1 = dr.select(u1 >= 1.0, u1 - 1.0, u1)
+            c_j = ((j * lat_a) % kn) * (1.0 / kn)  # the lattice's second coordinate, before its shift
             if ndf_normals:
                 # D(m) cos(theta_m) by inversion: tan^2(theta_m) = -alpha^2 ln(1 - u1), phi_m = 2 pi u2.
                 cos_m = dr.rsqrt(dr.fma(-alpha2_o, dr.log(1.0 - u1), 1.0))
                 sin_m = dr.sqrt(dr.maximum(dr.fma(-cos_m, cos_m, 1.0), 0.0))
-                a_j = 2.0 * math.pi * ((j * lat_a) % kn) / kn
+                a_j = 2.0 * math.pi * c_j
                 s_phi = dr.fma(s_r2, math.cos(a_j), c_r2 * math.sin(a_j))
                 c_phi = dr.fma(c_r2, math.cos(a_j), -s_r2 * math.sin(a_j))
                 m = V3(sin_m * c_phi, sin_m * s_phi, cos_m)
                 w_m = vis_w * dr.maximum(dr.dot(wi, m), 0.0) / cos_m
             else:
-                u2 = e["r2"] + ((j * lat_a) % kn) * (1.0 / kn)
+                u2 = e["r2"] + c_j
                 u2 = dr.select(u2 >= 1.0, u2 - 1.0, u2)
                 m, _ = distr.sample(wi, mi.Point2f(u1, u2))
                 w_m = inv_ev
