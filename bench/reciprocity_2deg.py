@@ -42,6 +42,9 @@ each row's tracer rate (stops taken out of the group they fell in), the wall to 
 less the stops, each complete row's error by the model (its directions' batch-spread estimates
 over the analysis's averaging ratio) and the tracing left.
 
+``schedule``: that row schedule alone, written as a JSON list (``--schedule-out``) without
+baking, from an analysis and one of its bakes' chunks.
+
 ``reschedule``: a row schedule moved to other targets: each row's photons scaled by (old
 target / new target)^2 and rounded to whole batches (``--rounding nearest`` by default: the old
 schedule's rows were already rounded up once, and rounding up again adds about 2.5 % of
@@ -870,6 +873,11 @@ def main() -> None:
     pg.add_argument("--targets", type=Path, help="full_bake_2deg.py results: each row's 16M-photon error")
     pg.add_argument("--target-key", default="e16_unbiased", help="which of their targets (default: e16_unbiased)")
     pg.add_argument("--out", type=Path, required=True)
+    sc = sub.add_parser("schedule", help="an analyse result's row schedule, written as a JSON list (no bake)")
+    sc.add_argument("analysis", type=Path, help="an analyse result")
+    sc.add_argument("--schedule-chunks", type=Path, required=True, help="the directory of one of the bakes it analysed")
+    sc.add_argument("--per-batch", type=int, default=16384, help="rows rounded up to whole batches of this many")
+    sc.add_argument("--schedule-out", type=Path, required=True)
     rs = sub.add_parser("reschedule", help="a row schedule scaled to other per-row targets")
     rs.add_argument("--schedule", type=Path, required=True, help="a JSON list of photons per direction of each row")
     rs.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results holding both keys")
@@ -899,6 +907,10 @@ def main() -> None:
         traced_rows(args)
     elif args.part == "wall":
         wall(args)
+    elif args.part == "schedule":
+        rows, _ = schedule(args.analysis, args.schedule_chunks, args.per_batch)
+        args.schedule_out.write_text(json.dumps(rows) + "\n")
+        print(json.dumps(rows))
     elif args.part == "reschedule":
         reschedule(args)
     elif args.part == "progress":

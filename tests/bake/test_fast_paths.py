@@ -133,3 +133,17 @@ def test_tail_phases_give_the_same_expected_values(silk_scene, monkeypatch):
         np.testing.assert_array_equal(a.directions, b.directions)
         np.testing.assert_array_equal(a.exit_weights(), b.exit_weights())
         np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-12, atol=1e-15)
+
+
+def test_expected_values_do_not_depend_on_the_launches(silk_scene):
+    """A direction whose photons several launches share (its histograms summed over them) gets
+    the exits and in-kernel histograms of one launch (up to the order of float64 additions)."""
+    hb = tracer.ExitHistogram.for_grid(Grid(6.0), [0.0, 0.05])
+    kw = dict(eta=ETA, beta_deg=15.0, max_bounces=4096, seed=[3, 4, 5], expected=4, histogram=hb)
+    dirs = [(1.2, 0.3), (0.6, 2.0), (0.1, 4.0)]
+    one = tracer.trace_many(silk_scene, dirs, 4000, batch=1 << 21, **kw)
+    split = tracer.trace_many(silk_scene, dirs, 4000, batch=3000, **kw)    # launches cut inside directions
+    for a, b in zip(one, split):
+        assert a.n_hit == b.n_hit and a.histogram.sum() > 0 and a.histogram.shape == (2, 2, hb.n_bins)
+        np.testing.assert_array_equal(a.directions, b.directions)
+        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-12, atol=1e-15)
