@@ -7,9 +7,10 @@ A shape ``DxN`` is D directions of one theta_i row (consecutive phi_i from the r
 each traced as two batches of N photons through the baker's own ``trace_directions`` at
 the scheduled bake's settings (the expected value at K = 32, box bins, 11 absorption levels).
 Every shape holds the same photons (2 x D x N), so the shapes differ only in how many photons each
-(direction, batch) has: each pays a fixed cost (its in-kernel histograms, 24 float64 values per
-2 deg bin, zeroed, reduced over the threads' copies, read back and rearranged; and its share of
-the launches), which more photons per batch spread thinner. The row's statistics (binning every
+(direction, batch) has: each pays a fixed cost (its in-kernel histograms, 24 values per 2 deg
+bin, float32 now, float64 when bench/REPORT.md measured the shapes; zeroed, reduced over the
+threads' copies, read back and rearranged; and its share of the launches), which more photons
+per batch spread thinner. The row's statistics (binning every
 batch into the direction's sums) are timed with it, as a bake spends them. Rounds alternate the
 order of the shapes and rows; medians with their range.
 

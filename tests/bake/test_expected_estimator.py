@@ -28,6 +28,9 @@ from estimator_scenes import star_profile
 from stats_util import FALSE_FAILURE, compare_blocks
 
 ETA = 1.55
+#: The kernels' histograms are float32 sums: the same deposits added in another order agree to a
+#: few ulps (a deposit more or less in a bin changes it by 1e-4 and more).
+F32_SUMS = 1e-5
 SIGMA = 0.05           # 1/um: absorption across the 10 um fibers below, about 0.4 optical depths
 GRID = Grid(6.0)
 HIST = ExitHistogram.for_grid(GRID, [SIGMA])
@@ -219,7 +222,7 @@ def test_launches_cut_for_bounded_histograms_give_the_same_photons(monkeypatch):
     cut = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2, 3], expected=4, histogram=HIST)
     for x, y in zip(whole, cut):
         assert x.n_hit == y.n_hit and np.array_equal(x.directions, y.directions)
-        assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)
+        assert np.allclose(x.histogram, y.histogram, rtol=F32_SUMS, atol=F32_SUMS * x.histogram.max())
 
 
 @pytest.mark.parametrize("copies,packets", [(1, True), (2, True), (1, False)])
@@ -236,7 +239,7 @@ def test_deposits_to_copies_per_thread_equal_atomic_adds(monkeypatch, copies, pa
     got = trace_many(fs, dirs, 4096, eta=ETA, beta_deg=8.0, seed=[1, 2], expected=4, histogram=hist)
     for x, y in zip(ref, got):
         assert x.histogram.sum() > 0.0 and np.array_equal(x.directions, y.directions)
-        assert np.allclose(x.histogram, y.histogram, rtol=1e-9, atol=1e-12)
+        assert np.allclose(x.histogram, y.histogram, rtol=F32_SUMS, atol=F32_SUMS * x.histogram.max())
 
 
 @pytest.mark.parametrize("levels", [(0.0,), (0.0, 0.02, 0.3), (0.0, 0.01, 0.05, 0.1, 0.4), tuple(np.linspace(0, 1, 11))])
@@ -252,7 +255,7 @@ def test_histogram_levels_in_padded_packets(levels):
         one = trace(fs, 0.5, 0.7, 4096, eta=ETA, beta_deg=8.0, seed=3, expected=4,
                     histogram=ExitHistogram.for_grid(GRID, [sigma])).histogram
         assert one.sum() > 0.0
-        assert np.allclose(many[k], one[0], rtol=1e-9, atol=1e-12)
+        assert np.allclose(many[k], one[0], rtol=F32_SUMS, atol=F32_SUMS * one[0].max())
 
 
 # ---- settings, bakes and refusals ---------------------------------------------------------------------

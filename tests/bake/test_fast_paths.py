@@ -120,7 +120,7 @@ def test_tail_phases_trace_the_same_photons(silk_scene, monkeypatch):
 
 def test_tail_phases_give_the_same_expected_values(silk_scene, monkeypatch):
     """With the expected-value estimator too: the same exits and the same in-kernel histograms
-    (up to the order of float64 additions) whether the tail phases start at once or never."""
+    (up to the order of the kernels' float32 additions) whether the tail phases start at once or never."""
     hb = tracer.ExitHistogram.for_grid(Grid(6.0), [0.0, 0.05])
     kw = dict(eta=ETA, beta_deg=15.0, max_bounces=4096, seed=7, expected=4, histogram=hb)
     dirs = [(1.45, 0.3), (0.6, 2.0)]
@@ -132,12 +132,15 @@ def test_tail_phases_give_the_same_expected_values(silk_scene, monkeypatch):
         assert a.n_hit == b.n_hit and a.histogram.sum() > 0
         np.testing.assert_array_equal(a.directions, b.directions)
         np.testing.assert_array_equal(a.exit_weights(), b.exit_weights())
-        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-12, atol=1e-15)
+        # float32 sums added in another order: a few ulps (one photon more or less in a bin
+        # would change it by 1e-4 and more).
+        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-5, atol=1e-6 * a.histogram.max())
 
 
 def test_expected_values_do_not_depend_on_the_launches(silk_scene):
     """A direction whose photons several launches share (its histograms summed over them) gets
-    the exits and in-kernel histograms of one launch (up to the order of float64 additions)."""
+    the exits and in-kernel histograms of one launch (up to the order of the kernels' float32
+    additions)."""
     hb = tracer.ExitHistogram.for_grid(Grid(6.0), [0.0, 0.05])
     kw = dict(eta=ETA, beta_deg=15.0, max_bounces=4096, seed=[3, 4, 5], expected=4, histogram=hb)
     dirs = [(1.2, 0.3), (0.6, 2.0), (0.1, 4.0)]
@@ -146,4 +149,6 @@ def test_expected_values_do_not_depend_on_the_launches(silk_scene):
     for a, b in zip(one, split):
         assert a.n_hit == b.n_hit and a.histogram.sum() > 0 and a.histogram.shape == (2, 2, hb.n_bins)
         np.testing.assert_array_equal(a.directions, b.directions)
-        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-12, atol=1e-15)
+        # float32 sums added in another order: a few ulps (one photon more or less in a bin
+        # would change it by 1e-4 and more).
+        np.testing.assert_allclose(a.histogram, b.histogram, rtol=1e-5, atol=1e-6 * a.histogram.max())

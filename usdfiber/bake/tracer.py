@@ -229,10 +229,11 @@ _NEWTON = 48             # bracketed Newton steps of the below-horizon slope inv
 #: light leaves after many hits of the outer surface (bench/REPORT.md, section 7).
 _SPLIT_HITS = 64
 _SPLIT_CHUNK = 1 << 21   # splitting: most walks traced together between phases
-#: Expected-value estimator: the in-kernel histograms of one launch (float64, every level,
-#: weight and weight x L per bin, per direction of the launch, with their copies per thread:
-#: :func:`_hist_copies`) take at most this many bytes; launches are cut at direction boundaries
-#: to stay below it (one direction alone may exceed it, with one copy).
+#: Expected-value estimator: the histograms of one launch (every level, weight and weight x L
+#: per bin, per direction of the launch: float32 in the kernels with their copies per thread,
+#: :func:`_hist_copies`, and float64 read back) take at most this many bytes, counted as float64
+#: per copy; launches are cut at direction boundaries to stay below it (one direction alone may
+#: exceed it, with one copy).
 _HIST_BYTES = EXPECTED_HIST_BYTES
 #: Expected-value estimator: most photons per launch at a rough boundary (a phase queues at most
 #: one event per photon and iteration: 2^18 x 8).
@@ -289,18 +290,20 @@ class ExitHistogram:
 
     @property
     def packet(self) -> int:
-        """Values per packet of a deposit: 8 float64 (one AVX-512 vector, two AVX2 vectors), or
-        the smallest power of two that holds a bin's 2 x levels values when they are fewer."""
+        """Values per packet of a deposit: 8 (float32: one AVX2 vector), or the smallest power
+        of two that holds a bin's 2 x levels values when they are fewer."""
         return min(8, 1 << max(0, 2 * len(self.levels) - 1).bit_length())
 
     @property
     def stride(self) -> int:
-        """float64 values per bin in the launch's histograms: weight and weight x L of every
-        level, padded to whole packets."""
+        """Values per bin in the launch's histograms: weight and weight x L of every level,
+        padded to whole packets."""
         return -(-2 * len(self.levels) // self.packet) * self.packet
 
     @property
     def bytes_per_direction(self) -> int:
+        """A direction's histograms counted as float64 (as read back; the kernels' float32
+        copies take half that each), the unit of :data:`_HIST_BYTES`."""
         return self.stride * self.n_bins * 8
 
 
@@ -642,14 +645,18 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         hist_n = (int(launch.beam.max()) - hist_first + 1) if n else 1
         nlev, nbin = len(histogram.levels), histogram.n_bins
         pk_n, pk_g = histogram.stride // histogram.packet, histogram.packet
-        hist = dr.zeros(mi.Float64, hist_n * histogram.stride * nbin)
+        # float32 sums: a copy holds at most one batch of a direction from one thread, read back
+        # into float64 after each launch; against float64 sums the histograms differ by 1e-6
+        # relative, a thousand times below a bake's noise, and a bake traces 1.13-1.15x faster
+        # (float64 products, conversions and packets; bench/REPORT.md s. 7, "float32").
+        hist = dr.zeros(mi.Float32, hist_n * histogram.stride * nbin)
         # A deposit's 2 x levels values are adjacent (bin-major histograms) and added as packets
         # of pk_g values, to a private copy per thread where they fit (no atomics: 1.6x less
         # CPU per expected-value trace of rough silk, bench/REPORT.md s. 7), else atomically.
         hist_mode = dr.ReduceMode.Expand if _hist_copies(histogram) > 1 else dr.ReduceMode.Direct
         packets = _packet_deposits()
-        ArrayXf64 = getattr(importlib.import_module(type(hist).__module__), "ArrayXf64")
-        pad64 = mi.Float64(0.0)
+        ArrayXf = getattr(importlib.import_module(type(hist).__module__), "ArrayXf")
+        pad = mi.Float32(0.0)
         hist_beam = U(launch.beam.astype(np.uint32) - np.uint32(hist_first))
         lev_o = [dr.opaque(F, float(x)) for x in histogram.levels]
         step_inv = dr.opaque(F, 1.0 / histogram.step)
@@ -686,25 +693,23 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         # Bin-major: a deposit's 2 x levels values share a few cache lines (level-major, each
         # add was a cache miss of its own: 2.2x the deposit kernel's time at 11 levels).
         cell = hb * nbin + row * nph_o + col
-        wt64 = mi.Float64(wt)
-        vals = [wt64 * a for a in att]
+        vals = [wt * a for a in att]
         if not packets:
             for i, v in enumerate(vals):
                 dr.scatter_reduce(dr.ReduceOp.Add, hist, v, cell * (pk_n * pk_g) + i, mask, mode=hist_mode)
             return
-        vals += [pad64] * (pk_n * pk_g - len(vals))
+        vals += [pad] * (pk_n * pk_g - len(vals))
         for q in range(pk_n):
-            dr.scatter_reduce(dr.ReduceOp.Add, hist, ArrayXf64(vals[q * pk_g:(q + 1) * pk_g]), cell * pk_n + q, mask,
+            dr.scatter_reduce(dr.ReduceOp.Add, hist, ArrayXf(vals[q * pk_g:(q + 1) * pk_g]), cell * pk_n + q, mask,
                               mode=hist_mode)
 
     def attenuation(L: Any) -> list:
-        """exp(-sigma_k L) and L exp(-sigma_k L) of every level, in float64, once per event: a
-        deposit multiplies them by its weight (one conversion, not two per level)."""
-        L64 = mi.Float64(L)
+        """exp(-sigma_k L) and L exp(-sigma_k L) of every level, once per event: a deposit
+        multiplies them by its weight."""
         out = []
         for lev in lev_o:
-            a = mi.Float64(dr.exp(-lev * L))
-            out += [a, a * L64]
+            a = dr.exp(-lev * L)
+            out += [a, a * L]
         return out
 
     #: Rough outer events waiting for their expected exits (written by the loop, read between
@@ -1412,7 +1417,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         i = dr.arange(U, hist_n * 2 * nlev * nbin)
         dk, b = i // nbin, i % nbin                  # dk: direction x (2 levels) + value
         src = (dk // (2 * nlev) * nbin + b) * histogram.stride + dk % (2 * nlev)
-        extra["hist"] = np.asarray(dr.gather(mi.Float64, hist, src).numpy()).reshape(hist_n, nlev, 2, nbin)
+        extra["hist"] = np.asarray(dr.gather(mi.Float32, hist, src).numpy(), dtype=np.float64).reshape(
+            hist_n, nlev, 2, nbin)
         extra["hist_first"] = hist_first
         if rough:
             extra["ev_events"] = np.asarray(ev_events.numpy(), dtype=np.int64)
