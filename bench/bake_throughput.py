@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_common import use_source_tree
+
 #: Directions and photons of the paper's full 2 degree tables (silk, cotton: 45 x 180).
 FULL_DIRECTIONS = 45 * 180
 FULL_PHOTONS = 16_000_000
@@ -40,8 +42,7 @@ FULL_PHOTONS = 16_000_000
 def _worker(args: argparse.Namespace) -> int:
     """One timed call in this process, with ``--root``'s usdfiber; prints one JSON line."""
     root = str(Path(args.root).resolve())
-    sys.meta_path[:] = [f for f in sys.meta_path if "ScikitBuild" not in type(f).__name__]
-    sys.path.insert(0, root)
+    use_source_tree(root)
     bench_dir = str(Path(__file__).resolve().parent)
     if bench_dir not in sys.path:
         sys.path.append(bench_dir)

@@ -6,6 +6,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -163,3 +164,17 @@ def git_state(root: Path, sources: Sequence[str], dirs: Sequence[str]) -> dict[s
         "modified_sources": [l[3:] for l in status.splitlines() if l.strip()],
         "sha256_16": {s: sha16(root / s) for s in sources},
     }
+
+
+#: Import hooks of editable installs (setuptools' redirecting finder, scikit-build-core's):
+#: they resolve ``usdfiber`` to the installed checkout whatever ``sys.path`` says.
+_EDITABLE_HOOKS = ("editable", "skbc", "scikitbuild", "redirecting")
+
+
+def use_source_tree(tree: str | os.PathLike[str], *, bench: bool = False) -> None:
+    """Import ``usdfiber`` (and, with ``bench``, the benchmarks' helpers) from the source tree
+    ``tree`` in this process, not from an editable install: call it before the first import."""
+    sys.meta_path[:] = [f for f in sys.meta_path
+                        if not any(h in f"{type(f).__module__} {type(f).__name__}".lower() for h in _EDITABLE_HOOKS)]
+    root = str(Path(tree).resolve())
+    sys.path[:0] = [root, os.path.join(root, "bench")] if bench else [root]

@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench_common import use_source_tree
+
 REPO = Path(__file__).resolve().parents[1]
 STAGE = REPO / "examples" / "fig11_threads.usda"
 RES = (320, 180)
@@ -36,11 +38,8 @@ TABLES = dict(resolution_deg=10.0, photons=20000, batches=4)   # the examples' t
 
 def _use_code(code: str | None) -> None:
     """Import usdfiber from ``code`` (a source tree) instead of the installed package."""
-    if not code:
-        return
-    sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in type(f).__module__.lower()
-                        and "skbc" not in type(f).__module__.lower()]
-    sys.path.insert(0, str(Path(code).resolve()))
+    if code:
+        use_source_tree(code)
 
 
 def _close_up(stage):

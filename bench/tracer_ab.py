@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
@@ -30,13 +29,12 @@ from typing import Any
 import numpy as np
 
 from bake_common import Record
+from bench_common import use_source_tree
 
 
 def child(tree: str, fiber: str, rows: list[int], n_dirs: int, schedule: str, per_batch: int) -> None:
     """Time one group per row with ``usdfiber`` imported from ``tree``; print one JSON line."""
-    sys.meta_path[:] = [f for f in sys.meta_path
-                        if "editable" not in type(f).__module__.lower() and "Redirecting" not in type(f).__name__]
-    sys.path[:0] = [tree, os.path.join(tree, "bench")]
+    use_source_tree(tree, bench=True)
     from dataclasses import replace
 
     import usdfiber
