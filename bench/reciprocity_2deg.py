@@ -94,15 +94,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bake_common import Record  # noqa: E402
 
 
-def settings(photons: int, seed: int, resolution: float = 2.0, plain: bool = False) -> Any:
-    """The bakes' settings: box bins with the expected value, or (``plain``) the plain
-    estimator at centre nodes, whose errors give each row's 16M-photon error."""
+def settings(photons: int, seed: int, resolution: float = 2.0, plain: bool = False,
+             stratified: bool = False) -> Any:
+    """The bakes' settings: box bins with the expected value (``stratified``: its photons'
+    first numbers from scrambled Sobol points, ``usdfiber.bake.sampling``), or (``plain``) the
+    plain estimator at centre nodes, whose errors give each row's 16M-photon error."""
     from usdfiber.bake.settings import BakeSettings
 
     if plain:
         return BakeSettings(resolution_deg=resolution, photons=photons, batches=4, seed=seed)
     return BakeSettings(resolution_deg=resolution, photons=photons, batches=4, seed=seed, incoming="box",
-                        estimator=("expected",))
+                        estimator=("expected", "stratified") if stratified else ("expected",))
 
 
 def schedule(path: Path, chunks: Path, per_batch: int) -> tuple[list[int], dict[str, Any]]:
@@ -140,7 +142,9 @@ def bake(args: argparse.Namespace) -> None:
     from usdfiber.bake.requests import requests_from_preset
 
     req = requests_from_preset(args.fiber)[0]
-    st = settings(args.photons, args.seed, args.resolution, args.plain)
+    if args.plain and args.stratified:
+        raise SystemExit("--stratified is an option of the expected value's bakes, not of --plain")
+    st = settings(args.photons, args.seed, args.resolution, args.plain, args.stratified)
     plan = None
     if args.schedule:
         # The photons each row needs at its 16M-photon error with averaging, in whole batches
@@ -153,7 +157,7 @@ def bake(args: argparse.Namespace) -> None:
         else:
             rows, plan = schedule(args.schedule, args.schedule_chunks, args.per_batch)
         st = replace(st, photons=args.per_batch * st.batches, row_photons=tuple(rows),
-                     estimator=("expected", "reciprocity"))
+                     estimator=st.estimator + ("reciprocity",))
     c0, w0 = time.process_time(), time.perf_counter()
     table = bake_request(req, st, resume_dir=args.dir)
     table.save(Path(args.dir, "table.npz"))
@@ -824,6 +828,9 @@ def main() -> None:
     b.add_argument("--dir", type=Path, required=True)
     b.add_argument("--resolution", type=float, default=2.0, help="deg (2: the paper's; coarser for a smoke run)")
     b.add_argument("--plain", action="store_true", help="the plain estimator at centre nodes (the targets' table)")
+    b.add_argument("--stratified", action="store_true",
+                   help="the expected value's photons from scrambled Sobol points (the analysed bakes and the "
+                        "scheduled one alike)")
     b.add_argument("--schedule", type=Path, help="an analyse result: bake each row at its 16M-photon error with "
                    "the expected value and reciprocity averaging (the end-to-end bake)")
     b.add_argument("--schedule-chunks", type=Path, help="the directory of one of the bakes that result analysed")
