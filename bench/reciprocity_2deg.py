@@ -125,7 +125,7 @@ def schedule(path: Path, chunks: Path, per_batch: int) -> tuple[list[int], dict[
     met, launched = np.zeros(grid.n_theta_i), np.zeros(grid.n_theta_i)
     for ti in range(grid.n_theta_i):
         for pi in range(grid.n_phi_i):
-            d = rd.load(ti, pi)
+            d = rd.load_scalars(ti, pi)
             if d is None:
                 raise SystemExit(f"{chunks}: direction ({ti}, {pi}) missing")
             met[ti] += d["n_hit"] + d["misses"]
@@ -738,7 +738,7 @@ def progress(args: argparse.Namespace) -> None:
     for ti in range(grid.n_theta_i):
         for pi in range(grid.n_phi_i):
             if rd.has(ti, pi):
-                d = rd.load(ti, pi)
+                d = rd.load_scalars(ti, pi)
                 if d is None:
                     raise SystemExit(f"{rd.chunk_path(ti, pi)}: unusable chunk (see the warning)")
                 chunks.append([rd.chunk_path(ti, pi).stat().st_mtime, ti, d["seconds"], d["photons"],

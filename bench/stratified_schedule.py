@@ -39,32 +39,23 @@ from bake_common import Record  # noqa: E402
 
 
 def variance_per_photon(directory: Path) -> np.ndarray:
-    """(n_theta_i, n_phi_i) ``N e^2 / (1 - e^2)`` of every direction of a finished bake.
-
-    Only each chunk's ``scalars`` are read, checked against the chunk's checksum of them (a
-    full verified load reads the histograms too: 10 GB per 2 deg bake)."""
-    from usdfiber import table_format
-    from usdfiber.bake.chunks import CHUNK_FORMAT, SCALARS, chunk_name
+    """(n_theta_i, n_phi_i) ``N e^2 / (1 - e^2)`` of every direction of a finished bake, from
+    its chunks' scalars alone (verified: ``ResumeDirectory.load_scalars``)."""
+    from usdfiber.bake.chunks import ResumeDirectory
     from usdfiber.bake.grid import Grid
 
     fp = json.loads(Path(directory, "bake.json").read_text())
     grid = Grid.from_header(fp["grid"])
+    rd = ResumeDirectory(directory, fp)
     out = np.empty((grid.n_theta_i, grid.n_phi_i))
     for ti in range(grid.n_theta_i):
         for pi in range(grid.n_phi_i):
-            path = Path(directory, chunk_name(ti, pi))
-            try:
-                header = table_format.read_header(path, container=CHUNK_FORMAT)
-                with np.load(path) as z:
-                    sc = z["scalars"]
-            except (OSError, KeyError, ValueError, table_format.TableError) as exc:
-                raise SystemExit(f"{path}: unreadable ({exc}): finish the bake first") from None
-            if header.get("direction") != [ti, pi] or \
-                    table_format.array_checksum(sc) != header.get("checksums", {}).get("scalars"):
-                raise SystemExit(f"{path}: not direction ({ti}, {pi}) of this bake, or damaged")
-            photons, e = sc[SCALARS.index("photons")], sc[SCALARS.index("rel_error")]
+            sc = rd.load_scalars(ti, pi)
+            if sc is None:
+                raise SystemExit(f"{rd.chunk_path(ti, pi)}: missing or unusable (see the warning): finish the bake first")
+            photons, e = sc["photons"], sc["rel_error"]
             if not 0.0 <= e < 1.0:
-                raise SystemExit(f"{path}: relative error {e} gives no variance")
+                raise SystemExit(f"{rd.chunk_path(ti, pi)}: relative error {e} gives no variance")
             out[ti, pi] = photons * e * e / (1.0 - e * e)
     return out
 

@@ -62,7 +62,7 @@ def main() -> None:
     per_dir, per_row = [], []
     for r in rows:
         ds = [(ti, pi) for ti, pi in dirs if ti == r]
-        direct2 = np.array([float(rd.load(ti, pi)["rel_error"]) ** 2 for ti, pi in ds]) * args.photons / PAPER_PHOTONS
+        direct2 = np.array([float(rd.load_scalars(ti, pi)["rel_error"]) ** 2 for ti, pi in ds]) * args.photons / PAPER_PHOTONS
         naive2 = np.array([e_table[ti, pi] ** 2 for ti, pi in ds]) * scale
         unb2 = np.array([unbiased2(e_table[ti, pi]) for ti, pi in ds]) * scale
         for (ti, pi), a, b, c in zip(ds, direct2, naive2, unb2):

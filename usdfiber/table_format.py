@@ -43,7 +43,7 @@ import os
 import re
 import zipfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
@@ -214,7 +214,8 @@ def _header(path: Path, z, container: str) -> dict[str, Any]:
     return header
 
 
-def _arrays(path: Path, z, header: dict[str, Any]) -> dict[str, np.ndarray]:
+def _arrays(path: Path, z, header: dict[str, Any],
+            names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
     checksums: dict[str, str] = header["checksums"]
     meta: dict[str, Any] = header["arrays"]
     listed = set(checksums)
@@ -225,8 +226,11 @@ def _arrays(path: Path, z, header: dict[str, Any]) -> dict[str, np.ndarray]:
     if present - listed:
         name = sorted(present - listed)[0]
         raise TableError(path, f"truncated or corrupt: array {name} is not listed in the header")
+    wanted = listed if names is None else set(names)
+    if wanted - listed:
+        raise TableError(path, f"truncated or corrupt: no array {sorted(wanted - listed)[0]}")
     out: dict[str, np.ndarray] = {}
-    for name in sorted(listed):
+    for name in sorted(wanted):
         a = _read_entry(path, z, name)
         m = meta.get(name, {})
         if m.get("dtype") != a.dtype.str or list(m.get("shape", [])) != list(a.shape):
@@ -252,15 +256,16 @@ def read_header(path: str | os.PathLike[str], *, verify: bool = False,
     return header
 
 
-def read_table(path: str | os.PathLike[str], *,
-               container: str = FORMAT) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def read_table(path: str | os.PathLike[str], *, container: str = FORMAT,
+               names: Iterable[str] | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """``(header, arrays)`` of a table (or of a file of another ``container`` name), with
-    format, version and every checksum verified."""
+    format, version and every checksum verified. ``names``: read (and verify) only these
+    arrays; the others are left on disk (the header still has to list exactly what is there)."""
     p = Path(path)
     z = _open(p, container)
     with z:
         header = _header(p, z, container)
-        arrays = _arrays(p, z, header)
+        arrays = _arrays(p, z, header, names)
     return header, arrays
 
 

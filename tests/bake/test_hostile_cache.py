@@ -163,6 +163,35 @@ def test_a_chunk_whose_checksums_hold_but_whose_values_cannot_be_used(tmp_path, 
         assert rd.load(0, 1) is None
 
 
+def test_a_chunks_scalars_alone_are_verified(tmp_path):
+    """``load_scalars`` gives what ``load`` gives of a chunk's scalars, without its histograms,
+    and refuses what ``load`` refuses of them: another direction's or bake's chunk, damage,
+    negative counts. A damaged histogram it does not read is not its concern."""
+    rd = ResumeDirectory(tmp_path / "p", {"bake": 1}, histogram=(2, 4, 3))
+    rd.save(0, 0, {**_chunk(), "photons": 7, "rel_error": 0.25})
+    full, alone = rd.load(0, 0), rd.load_scalars(0, 0)
+    assert alone == {k: full[k] for k in SCALARS} and alone["photons"] == 7
+    shutil.copy(rd.chunk_path(0, 0), rd.chunk_path(0, 1))
+    with pytest.warns(RuntimeWarning, match=r"d0000_0001.npz: unusable partial bake chunk \(holds direction"
+                                            r" \[0, 0\], not \[0, 1\]\); not used"):
+        assert rd.load_scalars(0, 1) is None
+    other = ResumeDirectory(tmp_path / "q", {"bake": 2})
+    other.save(0, 2, _chunk())
+    shutil.copy(other.chunk_path(0, 2), rd.chunk_path(0, 2))
+    with pytest.warns(RuntimeWarning, match="written by another bake"):
+        assert rd.load_scalars(0, 2) is None
+    rd.save(0, 3, {**_chunk(), "photons": -3})
+    with pytest.warns(RuntimeWarning, match="scalars holds values that are not finite"):
+        assert rd.load_scalars(0, 3) is None
+    rd.chunk_path(1, 1).write_bytes(b"garbage")
+    with pytest.warns(RuntimeWarning, match="unusable partial bake chunk"):
+        assert rd.load_scalars(1, 1) is None
+    rd.save(1, 2, {**_chunk(), "H": np.full((2, 2, 3), np.nan)})
+    with pytest.warns(RuntimeWarning, match="H holds values that are not finite"):
+        assert rd.load(1, 2) is None
+    assert rd.load_scalars(1, 2)["photons"] == 1
+
+
 def test_an_error_estimate_of_infinity_is_a_usable_chunk(tmp_path):
     """A direction that no light leaves has an infinite error estimate: its chunk is kept."""
     rd = ResumeDirectory(tmp_path / "p", {"bake": 1}, histogram=(2, 4, 3))

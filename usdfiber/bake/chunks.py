@@ -15,7 +15,9 @@ an interruption loses at most the group in flight. The directory holds:
 :meth:`ResumeDirectory.load` is the one loader, and it verifies: a chunk that is unreadable,
 damaged, of another bake or of another direction, or whose sums are not finite non-negative
 floats of the bake's histogram size, is reported (a RuntimeWarning naming the file and the
-reason) and its direction is traced again.
+reason) and its direction is traced again. :meth:`ResumeDirectory.load_scalars` is the same
+loader reading a chunk's scalars alone (photons, error, seconds: what reports over a whole
+bake need), with the same checks of what it reads.
 """
 from __future__ import annotations
 
@@ -106,40 +108,53 @@ class ResumeDirectory:
 
     def load(self, ti: int, pi: int) -> dict[str, Any] | None:
         """The chunk of (ti, pi), verified; None (with a RuntimeWarning) when it cannot be used."""
+        return self._load(ti, pi, histograms=True)
+
+    def load_scalars(self, ti: int, pi: int) -> dict[str, Any] | None:
+        """The :data:`SCALARS` of the chunk of (ti, pi) alone, verified as :meth:`load` verifies
+        them (the bake, the direction, the scalars' checksum and values); None (with a
+        RuntimeWarning) when the chunk cannot be used. Its histograms stay on disk: reports over
+        a whole bake need not read them (10 GB for a 2 deg table)."""
+        return self._load(ti, pi, histograms=False)
+
+    def _load(self, ti: int, pi: int, histograms: bool) -> dict[str, Any] | None:
         path = self.chunk_path(ti, pi)
         try:
-            header, z = table_format.read_table(path, container=CHUNK_FORMAT)
+            header, z = table_format.read_table(path, container=CHUNK_FORMAT,
+                                                names=None if histograms else ("scalars",))
             if header.get("bake_key") != self.key:
                 raise ValueError("written by another bake")
             if header.get("direction") != [int(ti), int(pi)]:
                 raise ValueError(f"holds direction {header.get('direction')}, not {[ti, pi]}")
             sc = z["scalars"]
-            rows = tuple(int(x) for x in z["rows"])
-            if sc.shape != (len(SCALARS),) or len(rows) != 2:
+            rows = tuple(int(x) for x in z["rows"]) if histograms else None
+            if sc.shape != (len(SCALARS),) or (rows is not None and len(rows) != 2):
                 raise ValueError("scalars or rows have the wrong length")
-            if z["H"].shape != z["G"].shape or z["H"].ndim != 3 or z["H"].shape[1] != rows[1] - rows[0]:
+            if rows is not None and (z["H"].shape != z["G"].shape or z["H"].ndim != 3
+                                     or z["H"].shape[1] != rows[1] - rows[0]):
                 raise ValueError("rows and H disagree")
             self._check_values(rows, z)
         except (table_format.TableError, KeyError, ValueError, IndexError) as exc:
             reason = exc.reason if isinstance(exc, table_format.TableError) else str(exc)
-            warnings.warn(f"{path}: unusable partial bake chunk ({reason}); tracing that direction again",
-                          RuntimeWarning, stacklevel=2)
+            then = "tracing that direction again" if histograms else "not used"
+            warnings.warn(f"{path}: unusable partial bake chunk ({reason}); {then}", RuntimeWarning, stacklevel=3)
             return None
-        data: dict[str, Any] = {"rows": rows, "H": z["H"], "G": z["G"]}
+        data: dict[str, Any] = {"rows": rows, "H": z["H"], "G": z["G"]} if rows is not None else {}
         for name, value in zip(SCALARS, sc):
             data[name] = int(value) if name in _INTEGER_SCALARS else float(value)
         return data
 
-    def _check_values(self, rows: tuple[int, int], z: Mapping[str, np.ndarray]) -> None:
+    def _check_values(self, rows: tuple[int, int] | None, z: Mapping[str, np.ndarray]) -> None:
         """ValueError where a chunk whose checksums hold cannot be a direction of this bake:
         histograms of another size, or sums or counts that are NaN, infinite or negative (the
-        error estimate may be infinite: no light left that direction)."""
-        if self.histogram is not None:
+        error estimate may be infinite: no light left that direction). ``rows`` None: the
+        scalars alone were read."""
+        if self.histogram is not None and rows is not None:
             levels, n_rows, n_cols = self.histogram
             if not (0 <= rows[0] < rows[1] <= n_rows) or z["H"].shape[::2] != (levels, n_cols):
                 raise ValueError(f"H has shape {z['H'].shape} at rows {list(rows)}, "
                                  f"not ({levels}, rows, {n_cols}) within {n_rows} rows")
-        for name in ("H", "G", "scalars"):
+        for name in ("H", "G", "scalars") if rows is not None else ("scalars",):
             a = z[name]
             values = np.delete(a, SCALARS.index("rel_error")) if name == "scalars" else a
             if a.dtype.kind != "f" or not np.all(np.isfinite(values)) or (a.size and np.nanmin(a) < 0):
