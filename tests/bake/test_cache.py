@@ -154,20 +154,30 @@ def test_damaged_file_is_reported_and_rebaked(cache, damage):
 # Interrupted bakes
 # ---------------------------------------------------------------------------------------------
 
-def test_resume_after_interrupted_bake(tmp_path):
+def test_resume_after_interrupted_bake(tmp_path, monkeypatch):
+    # Groups of 4 directions: the interruption at the 5th falls in the second group.
+    monkeypatch.setattr("usdfiber.bake.settings.GROUP_DIRECTIONS", 4)
     req = request(preset="silk", variant_count=1)
     cache = TableCache(tmp_path / "c1")
     key = cache.key(req, TINY)
     k = 5
 
+    reported = []
+
     def interrupt(done, total, info):
-        if info["event"] == "direction" and done >= k:
-            raise KeyboardInterrupt
+        if info["event"] == "direction":
+            reported.append("d%04d_%04d.npz" % (round((info["theta_i_deg"] - 15) / 30), round((info["phi_i_deg"] - 15) / 30)))
+            if done >= k:
+                raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         cache.get_or_bake(req, TINY, interrupt)
-    chunks = sorted((cache.partial_dir(key)).glob("d*_*.npz"))
-    assert len(chunks) == k and not cache.table_path(key).exists()
+    # Every direction reported done has its chunk (its group's chunks are written while the
+    # next group traces; the interruption waits for them); nothing past its group.
+    chunks = sorted(p.name for p in cache.partial_dir(key).glob("d*_*.npz"))
+    assert len(reported) == k and set(reported) <= set(chunks) and not cache.table_path(key).exists()
+    assert len(chunks) == 8
+    k = len(chunks)
 
     traced, starts = [], []
 

@@ -220,6 +220,31 @@ def test_a_bake_traces_again_a_chunk_with_nan_sums(tmp_path):
     np.testing.assert_array_equal(again.arrays["p"], reference.arrays["p"])
 
 
+def test_a_chunk_that_cannot_be_written_stops_the_bake(tmp_path, monkeypatch):
+    """Chunks are written while the next group traces: a write that fails (a full disk) stops
+    the bake with that error, and the chunks written before it are kept."""
+    from usdfiber.bake import profiles
+    from usdfiber.bake.baker import bake_table
+
+    monkeypatch.setattr("usdfiber.bake.settings.GROUP_DIRECTIONS", 2)
+    real, calls = ResumeDirectory.save, []
+
+    def save(self, ti, pi, data):
+        calls.append((ti, pi))
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(self, ti, pi, data)
+
+    monkeypatch.setattr(ResumeDirectory, "save", save)
+    settings = BakeSettings(resolution_deg=30, photons=400, batches=2)
+    with pytest.raises(OSError, match="No space left"):
+        bake_table(profiles.circle(), 1.55, 8.0, None, settings, resume_dir=tmp_path / "r")
+    # The first group's two chunks, written before the failure (three directions: groups of
+    # two and one); the second group's write failed and reached the caller.
+    assert sorted(p.name for p in (tmp_path / "r").glob("d*.npz")) == ["d0000_0000.npz", "d0001_0000.npz"]
+    assert len(calls) == 3
+
+
 # ---- cache and disk states ---------------------------------------------------------------------------
 
 def test_tables_being_a_file_fails_before_tracing(tmp_path, request_, monkeypatch):

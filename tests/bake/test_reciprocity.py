@@ -18,7 +18,7 @@ from usdfiber.bake.baker import bake_context, bake_table, resume_fingerprint
 from usdfiber.bake.chunks import ResumeDirectory
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import ReciprocalAverage, partner_bins, reciprocal_average
-from usdfiber.bake.settings import RECIPROCITY_NODE_BYTES, BakeError, BakeSettings, reciprocity_bytes
+from usdfiber.bake.settings import RECIPROCITY_NODE_BYTES, RECIPROCITY_THREADS, BakeError, BakeSettings, reciprocity_bytes
 from usdfiber.memory_budget import MemoryBudget
 
 ETA = 1.55
@@ -183,6 +183,7 @@ def test_averaging_holds_one_level_not_the_table(tmp_path):
     tracemalloc.start()
     try:
         with ReciprocalAverage(g, K, PPB, tmp_path) as avg:
+            threads = avg.threads
             for ti in range(g.n_theta_i):
                 for pi in range(g.n_phi_i):
                     avg.add(ti, pi, _random_slice(g, K, rng, ti, pi))
@@ -195,8 +196,11 @@ def test_averaging_holds_one_level_not_the_table(tmp_path):
     finally:
         tracemalloc.stop()
     assert rows > 0
-    bound = reciprocity_bytes(g)
-    assert bound == 2 * level + RECIPROCITY_NODE_BYTES * level // (4 * g.n_theta_i)
+    bound = reciprocity_bytes(g, threads)
+    node = RECIPROCITY_NODE_BYTES * level // (4 * g.n_theta_i)
+    assert reciprocity_bytes(g) == 2 * level + node
+    # The averaging's threads each hold one node's temporaries.
+    assert 1 <= threads <= RECIPROCITY_THREADS and bound == 2 * level + threads * node
     assert peak < bound + (4 << 20), (peak, bound)
     assert peak < 2 * K * level / 4, (peak, 2 * K * level)
 
@@ -320,3 +324,45 @@ def test_bake_equals_the_dense_average_of_its_chunks(shape, tmp_path, monkeypatc
     t2 = bake_table(prof, ETA, 15.0, None, st)
     np.testing.assert_array_equal(t2.arrays["p"], t.arrays["p"])
     assert list((tmp_path / "tmp").iterdir()) == []
+
+
+def test_a_damaged_chunk_read_ahead_is_traced_again(tmp_path):
+    """The averaging reads each chunk while the previous one is being added: a damaged chunk
+    met that way is reported and traced again, and the table equals the undamaged bake's."""
+    prof = profiles.ellipse(0.5, 0.3)
+    st = BakeSettings(resolution_deg=30, photons=2000, batches=2, incoming="box", estimator="reciprocity",
+                      storage="float32", levels=(0.0, 0.5, 2.0))
+    resume = tmp_path / "resume"
+    t = bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
+    chunk = resume / "d0001_0003.npz"
+    chunk.write_bytes(chunk.read_bytes()[:-100])
+    with pytest.warns(RuntimeWarning, match="d0001_0003.npz: unusable partial bake chunk"):
+        again = bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
+    for name in ("p", "p_scale", "lbar", "albedo", "rel_error", "photons"):
+        np.testing.assert_array_equal(again.arrays[name], t.arrays[name], err_msg=name)
+
+
+def test_threads_follow_the_budget_and_change_nothing(tmp_path):
+    """The averaging takes a second thread only where the budget holds its node's
+    temporaries, and the threads' table equals one thread's bit for bit (each node is
+    averaged from the level as read, whatever the order)."""
+    g, K = Grid(30.0), 3
+    slices = _random_table(g, K, seed=9)
+    tight = MemoryBudget(reciprocity_bytes(g, 1), "test")
+    wide = MemoryBudget(reciprocity_bytes(g, RECIPROCITY_THREADS), "test")
+    out = {}
+    for name, budget, force in (("one", tight, None), ("many", wide, None), ("forced", wide, 2)):
+        with ReciprocalAverage(g, K, PPB, tmp_path, budget) as avg:
+            if force:
+                avg.threads = force
+            assert avg.threads == (1 if name == "one" else force or RECIPROCITY_THREADS)
+            for key, d in slices.items():
+                avg.add(*key, d)
+            avg.finish()
+            out[name] = {k: avg.source(*k) for k in slices}
+    for name in ("many", "forced"):
+        for k in slices:
+            for a in ("H", "G"):
+                np.testing.assert_array_equal(out[name][k][a], out["one"][k][a])
+            assert out[name][k]["rows"] == out["one"][k]["rows"]
+            assert out[name][k]["rel_error"] == out["one"][k]["rel_error"]

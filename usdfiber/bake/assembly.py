@@ -65,11 +65,11 @@ def assemble(grid: Grid, levels: Sequence[float], n_slices: tuple[int, int],
             r0, r1 = sl["rows"]
             H = np.asarray(sl["H"], dtype=np.float64)
             mass = np.zeros(n_r)
-            for k in range(K):
-                rm = H[k].sum(axis=-1)
-                t = rm.sum()
-                if t > 0:
-                    mass[r0:r1] = np.maximum(mass[r0:r1], rm / t)
+            rm = H.sum(axis=-1)                      # (K, rows): each level's mass by row
+            t = rm.sum(axis=-1)
+            lit = t > 0
+            if lit.any():
+                mass[r0:r1] = (rm[lit] / t[lit, None]).max(axis=0)
             lo, hi = band_rows(mass, band_tail)
             bands[ti, pi] = (lo, hi)
     n_band = int(max(1, (bands[..., 1] - bands[..., 0]).max()))
@@ -97,29 +97,30 @@ def assemble(grid: Grid, levels: Sequence[float], n_slices: tuple[int, int],
             Gf[:, r0:r1] = np.asarray(sl["G"], dtype=np.float64)
             b0 = int(start[ti, pi])
             band = slice(b0, b0 + n_band)
-            for k in range(K):
-                tot_h = Hf[k].sum()
-                albedo[ti, pi, k] = tot_h / norm if norm > 0 else 0.0
-                albedo_l[ti, pi, k] = Gf[k].sum() / tot_h if tot_h > 0 else 0.0
-                Fb = Hf[k, band]
-                fb = Fb.sum()
-                if k == 0 and tot_h > 0:
-                    dropped = max(dropped, 1.0 - fb / tot_h)
-                if fb <= 0:
-                    continue
-                p = Fb / fb / dom[band, None]
-                m = p.max()
-                p_scale[ti, pi, k] = m
-                q = (p / m).astype(dt)
-                p_arr[ti, pi, k] = q
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    lb = np.where(Fb > 0, Gf[k, band] / np.where(Fb > 0, Fb, 1.0), 0.0)
-                l_arr[ti, pi, k] = lb.astype(dt)
-                # quantization error of the stored p (relative L2 over the sphere)
-                err = q.astype(np.float64) * m - p
+            # Every level at once (the same arithmetic level by level: one call for K levels).
+            tot_h = Hf.sum(axis=(1, 2))
+            albedo[ti, pi] = tot_h / norm if norm > 0 else 0.0
+            with np.errstate(invalid="ignore", divide="ignore"):
+                albedo_l[ti, pi] = np.where(tot_h > 0, Gf.sum(axis=(1, 2)) / np.where(tot_h > 0, tot_h, 1.0), 0.0)
+            fb = Hf[:, band].sum(axis=(1, 2))
+            if tot_h[0] > 0:
+                dropped = max(dropped, 1.0 - fb[0] / tot_h[0])
+            lit = np.flatnonzero(fb > 0)             # levels with light in the band
+            if lit.size:
+                Fb = Hf[lit, band]
                 w = dom[band, None]
-                q_num[k] += float((w * err ** 2).sum())
-                q_den[k] += float((w * p ** 2).sum())
+                p = Fb / fb[lit, None, None] / w
+                m = p.max(axis=(1, 2))
+                p_scale[ti, pi, lit] = m
+                q = (p / m[:, None, None]).astype(dt)
+                p_arr[ti, pi, lit] = q
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    lb = np.where(Fb > 0, Gf[lit, band] / np.where(Fb > 0, Fb, 1.0), 0.0)
+                l_arr[ti, pi, lit] = lb.astype(dt)
+                # quantization error of the stored p (relative L2 over the sphere)
+                err = q.astype(np.float64) * m[:, None, None] - p
+                q_num[lit] += (w * err ** 2).sum(axis=(1, 2))
+                q_den[lit] += (w * p ** 2).sum(axis=(1, 2))
             rel_error[ti, pi] = float(sl["rel_error"])
             photons[ti, pi] = int(sl["photons"])
 

@@ -48,8 +48,9 @@ their cells by default (the paper's choice, for interpolation between nodes); ``
 its bin instead, which makes the discrete table reciprocal bin for bin.
 
 Resuming: with ``resume_dir``, every finished incoming direction is written there as a
-verified chunk (:mod:`usdfiber.bake.chunks`) before the next group of directions starts (an
-interruption loses at most the group in flight: about ``GROUP_PHOTONS`` photons per batch); a
+verified chunk (:mod:`usdfiber.bake.chunks`), written while the next group of directions
+traces (an interruption waits for those writes and loses at most the group in flight: about
+``GROUP_PHOTONS`` photons per batch; a killed process, at most two groups); a
 rerun with the same directory (and the same inputs and settings, recorded in ``bake.json``)
 traces only the directions without a usable chunk. Tables of more than
 :data:`DIRECTIONS_IN_MEMORY` directions keep their finished directions in a scratch directory
@@ -64,8 +65,9 @@ import platform
 import tempfile
 import time
 import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -295,21 +297,32 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
     done = len(done_from_disk)
     todo = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi) if (ti, pi) not in done_from_disk]
     # Directions are traced in groups that share tracer launches (about GROUP_PHOTONS photons
-    # per batch); each finished group is saved before the next starts.
+    # per batch). A finished group's chunks are written by one thread while the next group
+    # traces (a write mostly waits on the disk: checksum, fsync); at most one group waits to be
+    # written, a failed write stops the bake when the next group is traced, and leaving the
+    # block (also on Ctrl-C) waits for the writes in flight.
     group = directions_per_group(st)
-    for g0 in range(0, len(todo), group):
-        dirs = todo[g0:g0 + group]
-        for (ti, pi), data in zip(dirs, trace_directions(ctx, dirs)):
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="usdfiber-chunks") as writer:
+        pending: Future | None = None
+        for g0 in range(0, len(todo), group):
+            dirs = todo[g0:g0 + group]
+            traced = trace_directions(ctx, dirs)
+            if pending is not None:
+                pending.result()
+                pending = None
             if resume is not None:
-                resume.save(ti, pi, data)
-            else:
-                in_memory[(ti, pi)] = data
-            done += 1
-            if progress is not None:
-                progress(done, total, {"event": "direction", "theta_i_deg": math.degrees(data["theta_i"]),
-                                       "phi_i_deg": math.degrees(data["phi_i"]), "photons": data["photons"],
-                                       "rel_error": data["rel_error"], "seconds": data["seconds"],
-                                       "resumed": False})
+                pending = writer.submit(_save_group, resume, dirs, traced)
+            for (ti, pi), data in zip(dirs, traced):
+                if resume is None:
+                    in_memory[(ti, pi)] = data
+                done += 1
+                if progress is not None:
+                    progress(done, total, {"event": "direction", "theta_i_deg": math.degrees(data["theta_i"]),
+                                           "phi_i_deg": math.degrees(data["phi_i"]), "photons": data["photons"],
+                                           "rel_error": data["rel_error"], "seconds": data["seconds"],
+                                           "resumed": False})
+        if pending is not None:
+            pending.result()
 
     stats = {"photons": 0, "n_hit": 0, "n_cut": 0, "leaks": 0, "seconds": 0.0}
     counted: set[tuple[int, int]] = set()
@@ -318,8 +331,9 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
     kept: dict[tuple[int, int], dict[str, Any]] = {}
     kept_bytes = 0
 
-    def load_slice(ti: int, pi: int, again: bool = True) -> Mapping[str, Any]:
-        """Direction (ti, pi), counted in ``stats`` once; ``again``: it will be read again."""
+    def load_slice(ti: int, pi: int, again: bool = True, read: Any = _UNREAD) -> Mapping[str, Any]:
+        """Direction (ti, pi), counted in ``stats`` once; ``again``: it will be read again;
+        ``read``: its chunk as ``resume.load`` returned it, when already read."""
         nonlocal kept_bytes
         if resume is None:
             d = in_memory[(ti, pi)] if again else in_memory.pop((ti, pi))
@@ -327,7 +341,7 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             d = kept.pop((ti, pi))
             kept_bytes -= _chunk_bytes(d)
         else:
-            d = resume.load(ti, pi)
+            d = resume.load(ti, pi) if read is _UNREAD else read
             if d is None:  # unusable: trace it again
                 d = _trace_direction(ctx, ti, pi)
                 resume.save(ti, pi, d)
@@ -376,9 +390,13 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             # assembly reads the averaged ones), then the averaged ones come out one at a time.
             averager = ReciprocalAverage(grid, len(ctx.levels_um), st.photons_per_batch,
                                          resume.path if resume is not None else None)
-            for ti in range(n_ti):
-                for pi in range(n_pi):
+            order = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi)]
+            if resume is None:
+                for ti, pi in order:
                     averager.add(ti, pi, load_slice(ti, pi, again=False))
+            else:
+                for (ti, pi), chunk in _read_ahead(resume, order):
+                    averager.add(ti, pi, load_slice(ti, pi, again=False, read=chunk))
             averager.finish()
             source = averager.source
         table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
@@ -408,6 +426,31 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
                                       "rule": "usdfiber.bake.band_limit"}
     table.header["leaks"] = int(stats["leaks"])
     return table
+
+
+#: ``load_slice``'s marker of a chunk not read yet (``resume.load`` returns None for an unusable one).
+_UNREAD = object()
+
+
+def _read_ahead(resume: ResumeDirectory, order: list[tuple[int, int]]) -> Iterator[tuple[tuple[int, int], Any]]:
+    """``(direction, resume.load(direction))`` in ``order``, the next chunk read and verified
+    by one thread while the caller uses this one (a read mostly waits on the disk and the
+    checksum, which run without the interpreter lock); one chunk ahead at most."""
+    if not order:
+        return
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="usdfiber-chunks") as reader:
+        ahead = reader.submit(resume.load, *order[0])
+        for i, key in enumerate(order):
+            chunk = ahead.result()
+            if i + 1 < len(order):
+                ahead = reader.submit(resume.load, *order[i + 1])
+            yield key, chunk
+
+
+def _save_group(resume: ResumeDirectory, dirs: list[tuple[int, int]], traced: list[dict[str, Any]]) -> None:
+    """Write a traced group's chunks, in order."""
+    for (ti, pi), data in zip(dirs, traced):
+        resume.save(ti, pi, data)
 
 
 def _chunk_bytes(data: Mapping[str, Any]) -> int:

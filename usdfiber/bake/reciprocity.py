@@ -40,13 +40,14 @@ import math
 import os
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO, Any, Mapping
 
 import numpy as np
 
 from usdfiber.bake.grid import Grid
-from usdfiber.bake.settings import BakeError, reciprocity_bytes
+from usdfiber.bake.settings import RECIPROCITY_THREADS, BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
 __all__ = ["ReciprocalAverage", "check_grid", "check_memory", "chunk_bytes", "incoming_measure", "node_partners", "node_weights", "partner_bins",
@@ -177,17 +178,23 @@ def incoming_measure(grid: Grid) -> np.ndarray:
 
 
 def _write(f: IO[bytes], a: np.ndarray, offset: int) -> None:
-    """Write ``a``'s bytes at ``offset``."""
-    f.seek(offset)
-    f.write(memoryview(np.ascontiguousarray(a)).cast("B"))
+    """Write ``a``'s bytes at ``offset``: positioned, so threads may write other parts at once."""
+    view = memoryview(np.ascontiguousarray(a)).cast("B")
+    fd, done = f.fileno(), 0
+    while done < len(view):
+        done += os.pwrite(fd, view[done:], offset + done)
 
 
 def _read_into(f: IO[bytes], a: np.ndarray, offset: int) -> None:
-    """Fill the contiguous ``a`` from ``offset``; a short read is a damaged scratch file."""
-    f.seek(offset)
+    """Fill the contiguous ``a`` from ``offset`` (positioned, as :func:`_write`); a short read
+    is a damaged scratch file."""
     view = memoryview(a).cast("B")
-    if f.readinto(view) != len(view):
-        raise OSError(f"{f.name}: scratch file shorter than written")
+    fd, done = f.fileno(), 0
+    while done < len(view):
+        n = os.preadv(fd, [view[done:]], offset + done)
+        if n <= 0:
+            raise OSError(f"{f.name}: scratch file shorter than written")
+        done += n
 
 
 class ReciprocalAverage:
@@ -209,8 +216,12 @@ class ReciprocalAverage:
 
     def __init__(self, grid: Grid, n_levels: int, photons_per_batch: int,
                  scratch: str | os.PathLike[str] | None = None, budget: MemoryBudget | None = None) -> None:
+        budget = budget if budget is not None else MemoryBudget.resolve()
         check_memory(grid, n_levels, scratch if scratch is not None else tempfile.gettempdir(), budget)
         self.grid = grid
+        #: Threads of :meth:`finish`: as many as the budget holds (one always does, above).
+        self.threads = max(n for n in range(1, RECIPROCITY_THREADS + 1)
+                           if n == 1 or budget.fits(reciprocity_bytes(grid, n)))
         self.n_levels = int(n_levels)
         self.photons_per_batch = int(photons_per_batch)
         n_dirs = grid.n_theta_i * grid.n_phi_i
@@ -296,12 +307,16 @@ class ReciprocalAverage:
             c = np.where(self._hit > 0, meas * self._wbar / self._hit, np.inf)
         level = (n_ti, n_pi, g.n_theta_o, g.n_phi_o)
         H, G = np.empty(level, dtype=np.float32), np.empty(level, dtype=np.float32)
-        for k in range(self.n_levels):
-            # The whole level is read before any node is written back: partners read originals.
-            _read_into(self._files["H"], H, self._offset(k, 0))
-            _read_into(self._files["G"], G, self._offset(k, 0))
-            for ti in range(n_ti):
-                self._average_node(k, ti, H, G, c, meas)
+        # The nodes of a level are averaged by ``threads`` threads: each reads the level in
+        # memory and writes only its own node's part of the files (numpy's arithmetic on these
+        # arrays and the positioned writes run without the interpreter lock).
+        with ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="usdfiber-reciprocity") as pool:
+            for k in range(self.n_levels):
+                # The whole level is read before any node is written back: partners read originals.
+                _read_into(self._files["H"], H, self._offset(k, 0))
+                _read_into(self._files["G"], G, self._offset(k, 0))
+                for done in [pool.submit(self._average_node, k, ti, H, G, c, meas) for ti in range(n_ti)]:
+                    done.result()
         self._finished = True
 
     def _average_node(self, k: int, ti: int, H: np.ndarray, G: np.ndarray, c: np.ndarray,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -16,7 +17,7 @@ from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
 __all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS", "PROCESS_BYTES",
-           "RECIPROCITY_NODE_BYTES", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
+           "RECIPROCITY_NODE_BYTES", "RECIPROCITY_THREADS", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
            "BakeSettings", "directions_per_group", "reciprocity_bytes", "render_bake_settings"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
@@ -64,15 +65,21 @@ PROCESS_BYTES = 512 << 20
 #: (partner indices, weights, the averaged H and G; 45-53 bytes measured with tracemalloc):
 #: :func:`reciprocity_bytes`.
 RECIPROCITY_NODE_BYTES = 64
+#: Threads averaging theta_i nodes at once at most (each holds one node's temporaries:
+#: :func:`reciprocity_bytes`).
+RECIPROCITY_THREADS = max(1, min(4, os.cpu_count() or 1))
 
 
-def reciprocity_bytes(grid: Grid) -> int:
+def reciprocity_bytes(grid: Grid, threads: int = 1) -> int:
     """Peak bytes of the reciprocity averaging of a table of ``grid``
     (:class:`usdfiber.bake.reciprocity.ReciprocalAverage`), an upper bound: one absorption
     level of H and G of every direction in float32 (the rest of the table waits on disk),
-    and one theta_i node's temporaries (:data:`RECIPROCITY_NODE_BYTES` per entry)."""
+    and the temporaries of the theta_i nodes averaged at once, one per thread
+    (:data:`RECIPROCITY_NODE_BYTES` per entry). One thread is what a bake needs; the averaging
+    takes up to :data:`RECIPROCITY_THREADS` where the memory budget holds them."""
     bins = grid.n_theta_o * grid.n_phi_o
-    return 2 * 4 * grid.n_theta_i * grid.n_phi_i * bins + RECIPROCITY_NODE_BYTES * grid.n_phi_i * bins
+    node = RECIPROCITY_NODE_BYTES * grid.n_phi_i * bins
+    return 2 * 4 * grid.n_theta_i * grid.n_phi_i * bins + max(1, min(int(threads), grid.n_theta_i)) * node
 
 
 class BakeError(ValueError):
