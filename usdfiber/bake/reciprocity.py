@@ -27,12 +27,13 @@ stores normalized per direction anyway (a ratio: its bias is O(1/N), far below t
 
 The averaging streams (:class:`ReciprocalAverage`): each direction's H and G go to scratch
 files, laid out level by level, as the direction is read; then one absorption level of every
-direction at a time is read back, averaged (one theta_i node's partners at a time) and
-written over itself; the averaged directions are read out one at a time. It holds one level
-of the table in memory (:func:`usdfiber.bake.settings.reciprocity_bytes`: 1.2 GB for a 2 deg
-table, against 11.5 GB for all 11 levels) and needs the whole table's H and G on disk
-(:func:`scratch_bytes`); :func:`check_memory` refuses a bake, before tracing, where either
-does not fit.
+direction at a time is read back, averaged (one theta_i node's partners at a time, on as
+many threads as the memory budget holds, ``ReciprocalAverage.threads``) and written over
+itself; the averaged directions are read out one at a time. It holds one level of the table
+in memory (:func:`usdfiber.bake.settings.reciprocity_bytes`: 1.2 GB for a 2 deg table with
+one thread, 1.4 GB with two, against 11.5 GB for all 11 levels) and needs the whole table's
+H and G on disk (:func:`scratch_bytes`); :func:`check_memory` refuses a bake, before
+tracing, where either does not fit.
 """
 from __future__ import annotations
 
