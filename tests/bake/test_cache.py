@@ -14,6 +14,7 @@ from pxr import Usd
 from usdfiber import authoring
 from usdfiber.bake.baker import bake_request
 from usdfiber.bake.cache import TableCache, TableCacheWarning, cache_key, default_cache_dir, load_or_make
+from usdfiber.bake.chunks import chunk_name
 from usdfiber.bake.requests import params_from_mapping, requests_for_params, tables_for_stage
 from usdfiber.bake.settings import BakeSettings
 from usdfiber.bcsdf import MissingTableError, load_table, tables_for_prim
@@ -166,7 +167,8 @@ def test_resume_after_interrupted_bake(tmp_path, monkeypatch):
 
     def interrupt(done, total, info):
         if info["event"] == "direction":
-            reported.append("d%04d_%04d.npz" % (round((info["theta_i_deg"] - 15) / 30), round((info["phi_i_deg"] - 15) / 30)))
+            # the 30 deg grid's nodes are at 15 + 30 j degrees
+            reported.append(chunk_name(round((info["theta_i_deg"] - 15) / 30), round((info["phi_i_deg"] - 15) / 30)))
             if done >= k:
                 raise KeyboardInterrupt
 
