@@ -45,6 +45,9 @@ over the analysis's averaging ratio) and the tracing left.
 ``schedule``: that row schedule alone, written as a JSON list (``--schedule-out``) without
 baking, from an analysis and one of its bakes' chunks.
 
+``reschedule --model-rows``: a schedule's bake aimed at its targets: every row scaled by one factor, the
+mean over rows of (averaged error / target)^2 by that bake's ``progress`` model.
+
 ``reschedule``: a row schedule moved to other targets: each row's photons scaled by (old
 target / new target)^2 and rounded to whole batches (``--rounding nearest`` by default: the old
 schedule's rows were already rounded up once, and rounding up again adds about 2.5 % of
@@ -487,12 +490,24 @@ def reschedule(args: argparse.Namespace) -> None:
     """A row schedule scaled to other targets (see the module docstring)."""
     rec = Record("reciprocity_2deg", args)
     old = np.asarray(json.loads(Path(args.schedule).read_text()), dtype=np.float64)
-    rows = sorted(json.loads(Path(args.targets).read_text())["results"]["rows"], key=lambda r: r["row"])
+    source = args.model_rows if args.model_rows else args.targets
+    if source is None:
+        raise SystemExit("reschedule needs --targets or --model-rows")
+    rows = sorted(json.loads(Path(source).read_text())["results"]["rows"], key=lambda r: r["row"])
     if [r["row"] for r in rows] != list(range(len(old))):
-        raise SystemExit(f"{args.targets} does not hold one target per row of the {len(old)}-row schedule")
-    t_from = np.array([r[args.from_key] for r in rows])
-    t_to = np.array([r[args.to_key] for r in rows])
-    scale = (t_from / t_to) ** 2
+        raise SystemExit(f"{source} does not hold one row per row of the {len(old)}-row schedule")
+    if args.model_rows:
+        # One factor for every row: the schedule's bake, by its own model (each row's averaged
+        # error over its target, from its chunks' batch spreads), aimed at the targets' rms.
+        # Per row the model's spread is mostly its own noise (its rows hardly correlate with
+        # an independent end-to-end check), so the rows keep their ratios.
+        t_from = t_to = np.array([r["target_16m"] for r in rows])
+        over = np.array([r["averaged_over_target"] for r in rows])
+        scale = np.full(len(old), float(np.mean(over ** 2)))
+    else:
+        t_from = np.array([r[args.from_key] for r in rows])
+        t_to = np.array([r[args.to_key] for r in rows])
+        scale = (t_from / t_to) ** 2
     rnd = np.ceil if args.rounding == "up" else np.round
     new = np.maximum(rnd(old * scale / args.per_batch), 1) * args.per_batch
     out: dict[str, Any] = {"rows": [], "per_batch": args.per_batch, "rounding": args.rounding,
@@ -887,7 +902,10 @@ def main() -> None:
     sc.add_argument("--schedule-out", type=Path, required=True)
     rs = sub.add_parser("reschedule", help="a row schedule scaled to other per-row targets")
     rs.add_argument("--schedule", type=Path, required=True, help="a JSON list of photons per direction of each row")
-    rs.add_argument("--targets", type=Path, required=True, help="full_bake_2deg.py results holding both keys")
+    rs.add_argument("--targets", type=Path, help="full_bake_2deg.py results holding both keys")
+    rs.add_argument("--model-rows", type=Path,
+                    help="instead of --targets: a `progress` result of this schedule's bake; every row scaled by "
+                         "the mean of its rows' (averaged error / target)^2, aiming the schedule at its targets")
     rs.add_argument("--from-key", default="e16", help="the targets the schedule was made for")
     rs.add_argument("--to-key", default="e16_unbiased", help="the targets to move it to")
     rs.add_argument("--per-batch", type=int, default=16384)

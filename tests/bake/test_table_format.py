@@ -62,6 +62,48 @@ def test_round_trip(tmp_path, compress):
     assert methods == ({zipfile.ZIP_DEFLATED} if compress else {zipfile.ZIP_STORED})
 
 
+def test_default_level_is_written_by_isal_and_read_by_zlib(tmp_path, monkeypatch):
+    """compress=True deflates with ISA-L: every entry inflates with zlib (the reader's own
+    codec) to the bytes zlib's level 1 writes them from, and the file is the size zlib's would
+    be within a few percent; without ISA-L, zlib writes the same arrays."""
+    import zlib
+
+    assert T.FAST_DEFLATE, "isal is a dependency: the default level must use it"
+    rng = np.random.default_rng(1)
+    big = {"p": (rng.random((64, 4096)) ** 6).astype(np.float16), "n": np.arange(5000, dtype=np.int64)}
+    fast, slow = tmp_path / "fast.npz", tmp_path / "slow.npz"
+    write_table(fast, header(), big, compress=True)
+    monkeypatch.setattr(T, "FAST_DEFLATE", False)
+    write_table(slow, header(), big, compress=True)
+    with zipfile.ZipFile(fast) as zf, zipfile.ZipFile(slow) as zs:
+        assert zf.testzip() is None and zs.testzip() is None        # CRCs of what zlib inflates
+        for name in ("p.npy", "n.npy"):
+            raw_f = zlib.decompress(_member_bytes(fast, zf.getinfo(name)), -15)
+            assert raw_f == zs.read(name)
+        assert _member_bytes(fast, zf.getinfo("p.npy")) != _member_bytes(slow, zs.getinfo("p.npy"))  # two codecs
+        fsize = sum(i.compress_size for i in zf.infolist())
+        ssize = sum(i.compress_size for i in zs.infolist())
+    assert 0.9 < fsize / ssize < 1.1
+    for name, a in big.items():
+        assert np.array_equal(read_table(fast)[1][name], a)
+    # deflate() is the writer's codec: the entry's compressed size, less the .npy header's bytes.
+    monkeypatch.setattr(T, "FAST_DEFLATE", True)
+    with zipfile.ZipFile(fast) as zf:
+        assert abs(len(T.deflate(big["p"])) - zf.getinfo("p.npy").compress_size) < 256
+
+
+def _member_bytes(path: Path, info: zipfile.ZipInfo) -> bytes:
+    """A zip member's compressed bytes as stored (after its local header)."""
+    import struct
+
+    with open(path, "rb") as f:
+        f.seek(info.header_offset)
+        local = f.read(30)
+        n, m = struct.unpack("<HH", local[26:30])
+        f.seek(info.header_offset + 30 + n + m)
+        return f.read(info.compress_size)
+
+
 @pytest.mark.parametrize("bad", [-1, 10, 2.5])
 def test_refuses_unknown_levels(tmp_path, bad):
     with pytest.raises(ValueError, match="zlib level"):

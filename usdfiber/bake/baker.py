@@ -78,7 +78,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import ReciprocalAverage, check_memory
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
-from usdfiber.bake.settings import GROUP_PHOTONS, BakeError, BakeSettings, directions_per_group
+from usdfiber.bake.settings import ASSEMBLY_THREADS, GROUP_PHOTONS, BakeError, BakeSettings, directions_per_group
 from usdfiber.bake.statistics import BakeContext, DirectionStatistics
 from usdfiber.bake.storage import WIDTH_SAMPLES
 from usdfiber.bake.table import BcsdfTable
@@ -400,7 +400,7 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             averager.finish()
             source = averager.source
         table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
-                         band_tail=st.band_tail, storage=st.storage)
+                         band_tail=st.band_tail, storage=st.storage, threads=ASSEMBLY_THREADS)
     finally:
         if averager is not None:
             averager.close()

@@ -38,7 +38,6 @@ import platform
 import tempfile
 import time
 import zipfile
-import zlib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable
@@ -46,7 +45,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from usdfiber import table_format
-from usdfiber.bake.settings import BakeSettings, directions_per_group
+from usdfiber.bake.settings import ASSEMBLY_THREADS, BakeSettings, directions_per_group
 
 __all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "RECIPROCITY_BYTES_PER_SECOND", "PROBE_LAUNCH_PHOTONS", "PROBE_PHOTONS", "BakeEstimate", "Probe",
            "cheaper_hint", "estimate", "estimate_request", "format_seconds", "launch_model", "launch_shape", "probe",
@@ -298,7 +297,7 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")
         table = assemble(small_grid, ctx_big.levels_um, (rows, 1), lambda ti, pi: data[ti % D], ctx_big.width_env,
-                         hdr, band_tail=settings.band_tail, storage=settings.storage)
+                         hdr, band_tail=settings.band_tail, storage=settings.storage, threads=ASSEMBLY_THREADS)
     with tempfile.TemporaryDirectory(prefix="usdfiber-probe-") as tmp:
         f = Path(tmp) / "probe.npz"
         write_table_file(f, table.header, table.arrays)
@@ -307,7 +306,7 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
     # Bytes per direction: the distinct probe rows of each per-direction array, deflated as
     # one stream as the file's members are (the repeated rows would deflate to nothing).
     distinct = min(D, rows)      # a grid of fewer rows than probe directions holds fewer
-    per_dir = sum(len(zlib.compress(np.ascontiguousarray(table.arrays[name][:distinct]).tobytes(), _DEFLATE_LEVEL))
+    per_dir = sum(len(table_format.deflate(np.ascontiguousarray(table.arrays[name][:distinct])))
                   for name in _PER_DIRECTION) / distinct
     err = np.array([float(d["rel_error"]) for d in data])
     c = float(np.sqrt(np.mean(err[np.isfinite(err)] ** 2) * n)) if np.isfinite(err).any() else math.inf
@@ -320,10 +319,6 @@ def _measure(request: Any, settings: BakeSettings, n: int, key: str) -> Probe:
 
 #: Arrays of a table file with one entry per incoming direction (they grow with the grid).
 _PER_DIRECTION = ("p", "lbar", "p_scale", "albedo", "albedo_lbar", "band_start", "rel_error", "photons")
-
-
-#: zlib level the table file is written at (:data:`usdfiber.table_format.DEFAULT_LEVEL`).
-_DEFLATE_LEVEL = table_format.DEFAULT_LEVEL
 
 
 def _fixed_bytes(path: Path) -> float:

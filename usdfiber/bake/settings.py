@@ -17,7 +17,7 @@ from usdfiber.bake.absorption import DEFAULT_LEVELS
 from usdfiber.bake.grid import Grid
 
 __all__ = ["BAKER_VERSION", "BUILTIN_PROFILE_VERTICES", "ESTIMATORS", "EXPECTED_ALLOCATIONS", "EXPECTED_HIST_BYTES", "EXPECTED_SAMPLERS", "EXPECTED_QUEUE_BYTES", "MAX_EXPECTED_NORMALS", "MAX_SPLIT_WALKS", "GROUP_DIRECTIONS", "GROUP_PHOTONS", "PROCESS_BYTES",
-           "RECIPROCITY_NODE_BYTES", "RECIPROCITY_THREADS", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
+           "ASSEMBLY_THREADS", "RECIPROCITY_NODE_BYTES", "RECIPROCITY_THREADS", "RENDER_BAKE_SETTINGS", "RENDER_EXPECTED_SETTINGS", "ROUND_RENDER_RESOLUTION_DEG", "BakeError",
            "BakeSettings", "directions_per_group", "reciprocity_bytes", "render_bake_settings"]
 
 #: Bumped when the baker's algorithm changes what it writes (part of the cache key).
@@ -68,6 +68,9 @@ RECIPROCITY_NODE_BYTES = 64
 #: Threads averaging theta_i nodes at once at most (each holds one node's temporaries:
 #: :func:`reciprocity_bytes`).
 RECIPROCITY_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Threads doing the assembly's arithmetic per direction (:func:`usdfiber.bake.assembly.assemble`;
+#: a few MB each): a full 2 deg table's assembly ran on one core while the other waited.
+ASSEMBLY_THREADS = max(1, min(4, os.cpu_count() or 1))
 
 
 def reciprocity_bytes(grid: Grid, threads: int = 1) -> int:
