@@ -15,7 +15,7 @@ from usdfiber.bake import profiles
 from usdfiber.bake import reciprocity
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.baker import bake_context, bake_table, resume_fingerprint
-from usdfiber.bake.chunks import ResumeDirectory
+from usdfiber.bake.chunks import ResumeDirectory, chunk_name
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.reciprocity import ReciprocalAverage, partner_bins, reciprocal_average
 from usdfiber.bake.settings import RECIPROCITY_NODE_BYTES, RECIPROCITY_THREADS, BakeError, BakeSettings, reciprocity_bytes
@@ -366,3 +366,90 @@ def test_threads_follow_the_budget_and_change_nothing(tmp_path):
                 np.testing.assert_array_equal(out[name][k][a], out["one"][k][a])
             assert out[name][k]["rows"] == out["one"][k]["rows"]
             assert out[name][k]["rel_error"] == out["one"][k]["rel_error"]
+
+
+def test_a_resumed_bake_equals_the_unstopped_one(tmp_path, monkeypatch):
+    """Directions traced now go to the averaging as they are traced (never read back), those
+    of an earlier run are read from their chunks after the last group: the same table."""
+    prof = profiles.ellipse(0.5, 0.3)
+    st = BakeSettings(resolution_deg=30, photons=2000, batches=2, incoming="box", estimator="reciprocity",
+                      storage="float32", levels=(0.0, 0.5, 2.0))
+    loads: list[tuple[int, int]] = []
+    real_load = ResumeDirectory.load
+
+    def load(self, ti, pi):
+        loads.append((ti, pi))
+        return real_load(self, ti, pi)
+
+    monkeypatch.setattr(ResumeDirectory, "load", load)
+    whole = bake_table(prof, ETA, 15.0, None, st, resume_dir=tmp_path / "whole")
+    assert loads == []
+    resume = tmp_path / "resumed"
+    bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
+    chunks = sorted(resume.glob("d*_*.npz"))
+    for c in chunks[::2]:   # half the directions lost: traced again, the rest read back
+        c.unlink()
+    again = bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
+    assert sorted(resume / chunk_name(*d) for d in loads) == chunks[1::2]
+    assert again.header["photons"]["total"] == whole.header["photons"]["total"]
+    for name in ("p", "p_scale", "lbar", "albedo", "rel_error", "photons"):
+        np.testing.assert_array_equal(again.arrays[name], whole.arrays[name], err_msg=name)
+    assert sorted(p.name for p in resume.iterdir() if not p.name.startswith("d")) == ["bake.json"]
+
+
+_HOLD = """
+import sys, time
+from usdfiber.bake.grid import Grid
+from usdfiber.bake.reciprocity import ReciprocalAverage
+avg = ReciprocalAverage(Grid(30.0), 2, 1000, sys.argv[1])
+print(avg.directory, flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.skipif(reciprocity.fcntl is None, reason="no flock on this platform")
+def test_a_killed_averagings_scratch_files_are_removed_a_live_ones_kept(tmp_path):
+    """A process killed before it could remove its scratch files leaves them; the next
+    averaging (or bake) in that directory removes them, and never those of a live one."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        held = tmp_path / os.path.basename(proc.stdout.readline().strip())
+        assert held.is_dir() and (held / "H.f32").exists()
+        # Alive: kept, by a function call and by a new averaging beside it.
+        assert reciprocity.remove_stale_scratch(tmp_path) == [] and held.is_dir()
+        with ReciprocalAverage(Grid(30.0), 2, PPB, tmp_path) as mine:
+            assert held.is_dir()
+            assert reciprocity.remove_stale_scratch(tmp_path) == []
+        assert not mine.directory.exists()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        proc.stdout.close()
+    assert held.is_dir()                      # what a killed bake leaves
+    # A directory still being made (no H file yet) is left alone for a while, then removed.
+    young = tmp_path / (reciprocity.SCRATCH_PREFIX + "young")
+    young.mkdir()
+    old = tmp_path / (reciprocity.SCRATCH_PREFIX + "old")
+    old.mkdir()
+    past = time.time() - 2 * reciprocity._UNLOCKED_GRACE_S
+    os.utime(old, (past, past))
+    assert sorted(reciprocity.remove_stale_scratch(tmp_path)) == sorted([held, old])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [young.name]
+    # A bake in a resume directory removes them before it checks its disk.
+    resume = tmp_path / "resume"
+    resume.mkdir()
+    stale = resume / (reciprocity.SCRATCH_PREFIX + "stale")
+    stale.mkdir()
+    (stale / "H.f32").write_bytes(b"\0" * 64)
+    prof = profiles.ellipse(0.5, 0.3)
+    st = BakeSettings(resolution_deg=30, photons=500, batches=2, incoming="box", estimator="reciprocity",
+                      levels=(0.0, 0.5))
+    bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
+    assert sorted(p.name for p in resume.iterdir() if not p.name.startswith("d")) == ["bake.json"]

@@ -33,7 +33,8 @@ Estimators (``BakeSettings.estimator``): the plain one by default; "stratified" 
 photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.sampling`);
 "reciprocity" averages every entry of a box-filtered table with its reciprocal partner
 (:mod:`usdfiber.bake.reciprocity`) when the table is assembled (its chunks hold the plain
-histograms); "split" splits every hit of the outer surface into ``split_walks`` microsurface
+histograms; each direction goes to the averaging's scratch files as its group is written, so
+only a resumed bake's chunks are read back); "split" splits every hit of the outer surface into ``split_walks`` microsurface
 walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits);
 "expected" histograms, in the tracer's kernel, the expected exit of every outer-surface event
 where leaving is for good over up to ``expected_normals`` normals (shared among the events by
@@ -52,7 +53,8 @@ verified chunk (:mod:`usdfiber.bake.chunks`), written while the next group of di
 traces (an interruption waits for those writes and loses at most the group in flight: about
 ``GROUP_PHOTONS`` photons per batch; a killed process, at most two groups); a
 rerun with the same directory (and the same inputs and settings, recorded in ``bake.json``)
-traces only the directions without a usable chunk. Tables of more than
+traces only the directions without a usable chunk (scratch files a killed averaging left there
+are removed: :func:`usdfiber.bake.reciprocity.remove_stale_scratch`). Tables of more than
 :data:`DIRECTIONS_IN_MEMORY` directions keep their finished directions in a scratch directory
 even without ``resume_dir``.
 """
@@ -75,7 +77,7 @@ from usdfiber.bake import band_limit
 from usdfiber.bake.assembly import assemble
 from usdfiber.bake.chunks import ResumeDirectory, chunk_name
 from usdfiber.bake.grid import Grid
-from usdfiber.bake.reciprocity import ReciprocalAverage, check_memory
+from usdfiber.bake.reciprocity import ReciprocalAverage, check_memory, remove_stale_scratch
 from usdfiber.bake.requests import TableRequest
 from usdfiber.bake.sampling import stream_seed
 from usdfiber.bake.settings import ASSEMBLY_THREADS, GROUP_PHOTONS, BakeError, BakeSettings, directions_per_group
@@ -227,6 +229,9 @@ def bake_context(profile: Any, eta: float, beta_deg: float, cut: tuple[float, fl
     levels_um = np.asarray(st.levels, dtype=np.float64) / diameter
     if "reciprocity" in st.estimator:
         # Before hours of tracing, not after; the chunks go there too when it is a resume directory.
+        # Scratch files a killed bake left there hold disk that is free again.
+        if scratch is not None:
+            remove_stale_scratch(scratch)
         check_memory(grid, len(levels_um), scratch, chunks=scratch is not None)
     if "split" in st.estimator and cut is not None:
         raise BakeError("estimator 'split' needs a fiber without cuticle scales (the test that light "
@@ -296,11 +301,43 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
         progress(len(done_from_disk), total, {"event": "start", "resumed": len(done_from_disk), "total": total})
     done = len(done_from_disk)
     todo = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi) if (ti, pi) not in done_from_disk]
+    stats = {"photons": 0, "n_hit": 0, "n_cut": 0, "leaks": 0, "seconds": 0.0}
+    counted: set[tuple[int, int]] = set()
+
+    def count(ti: int, pi: int, d: Mapping[str, Any]) -> None:
+        """Add direction (ti, pi)'s photons and seconds to ``stats``, once."""
+        if (ti, pi) not in counted:
+            counted.add((ti, pi))
+            for k in ("photons", "n_hit", "n_cut", "leaks", "seconds"):
+                stats[k] += d[k]
+
+    # With reciprocity each direction's histograms go to the averaging's scratch files as soon
+    # as they are traced (read once, while in memory), not read back from their chunks after
+    # the last group: only the chunks of a resumed bake are read then.
+    averager = (ReciprocalAverage(grid, len(ctx.levels_um), st.photons_per_batch,
+                                  resume.path if resume is not None else None)
+                if "reciprocity" in st.estimator else None)
+    try:
+        _trace_all(ctx, todo, resume, averager, in_memory, count, progress, done, total)
+        return _assemble_table(ctx, profile, resume, averager, in_memory, stats, count, header, t_start)
+    finally:
+        if averager is not None:
+            averager.close()
+
+
+def _trace_all(ctx: BakeContext, todo: list[tuple[int, int]], resume: ResumeDirectory | None,
+               averager: ReciprocalAverage | None, in_memory: dict[tuple[int, int], dict[str, Any]],
+               count: Callable[[int, int, Mapping[str, Any]], None], progress: ProgressFn | None,
+               done: int, total: int) -> None:
+    """Trace the directions ``todo``; each goes to its chunk (``resume``), to the averaging
+    (``averager``), or else stays in ``in_memory``."""
+    st = ctx.settings
     # Directions are traced in groups that share tracer launches (about GROUP_PHOTONS photons
-    # per batch). A finished group's chunks are written by one thread while the next group
-    # traces (a write mostly waits on the disk: checksum, fsync); at most one group waits to be
-    # written, a failed write stops the bake when the next group is traced, and leaving the
-    # block (also on Ctrl-C) waits for the writes in flight.
+    # per batch). A finished group's chunks are written (and its histograms added to the
+    # averaging) by one thread while the next group traces (a write mostly waits on the disk:
+    # checksum, fsync); at most one group waits to be written, a failed write stops the bake
+    # when the next group is traced, and leaving the block (also on Ctrl-C) waits for the
+    # writes in flight.
     group = directions_per_group(st)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="usdfiber-chunks") as writer:
         pending: Future | None = None
@@ -310,10 +347,10 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             if pending is not None:
                 pending.result()
                 pending = None
-            if resume is not None:
-                pending = writer.submit(_save_group, resume, dirs, traced)
+            if resume is not None or averager is not None:
+                pending = writer.submit(_keep_group, resume, averager, count, dirs, traced)
             for (ti, pi), data in zip(dirs, traced):
-                if resume is None:
+                if resume is None and averager is None:
                     in_memory[(ti, pi)] = data
                 done += 1
                 if progress is not None:
@@ -324,12 +361,19 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
         if pending is not None:
             pending.result()
 
-    stats = {"photons": 0, "n_hit": 0, "n_cut": 0, "leaks": 0, "seconds": 0.0}
-    counted: set[tuple[int, int]] = set()
+
+def _assemble_table(ctx: BakeContext, profile: Any, resume: ResumeDirectory | None,
+                    averager: ReciprocalAverage | None, in_memory: dict[tuple[int, int], dict[str, Any]],
+                    stats: dict[str, Any], count: Callable[[int, int, Mapping[str, Any]], None],
+                    header: Mapping[str, Any] | None, t_start: float) -> BcsdfTable:
+    """The table of the traced directions (averaged by ``averager``, when given), and its header."""
+    st, grid = ctx.settings, ctx.grid
+    n_ti, n_pi = grid.n_theta_i, grid.n_phi_i
     # The assembly reads every direction twice (bands, then arrays): chunks read from disk
     # are kept for the second read while they fit in KEEP_CHUNK_BYTES, and released by it.
     kept: dict[tuple[int, int], dict[str, Any]] = {}
     kept_bytes = 0
+    first_read: set[tuple[int, int]] = set()
 
     def load_slice(ti: int, pi: int, again: bool = True, read: Any = _UNREAD) -> Mapping[str, Any]:
         """Direction (ti, pi), counted in ``stats`` once; ``again``: it will be read again;
@@ -345,13 +389,11 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
             if d is None:  # unusable: trace it again
                 d = _trace_direction(ctx, ti, pi)
                 resume.save(ti, pi, d)
-            if again and (ti, pi) not in counted and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
+            if again and (ti, pi) not in first_read and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
                 kept[(ti, pi)] = d
                 kept_bytes += _chunk_bytes(d)
-        if (ti, pi) not in counted:
-            counted.add((ti, pi))
-            for k in ("photons", "n_hit", "n_cut", "leaks", "seconds"):
-                stats[k] += d[k]
+        first_read.add((ti, pi))
+        count(ti, pi, d)
         return d
 
     cut = ctx.cuticle
@@ -382,28 +424,22 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
                  "machine": {"platform": platform.platform(), "processor": platform.machine(),
                              "cpus": os.cpu_count()}},
     })
-    averager = None
     source: Callable[[int, int], Mapping[str, Any]] = load_slice
-    try:
-        if "reciprocity" in st.estimator:
-            # Each entry is averaged with its partner's: every direction goes in (read once; the
-            # assembly reads the averaged ones), then the averaged ones come out one at a time.
-            averager = ReciprocalAverage(grid, len(ctx.levels_um), st.photons_per_batch,
-                                         resume.path if resume is not None else None)
-            order = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi)]
-            if resume is None:
-                for ti, pi in order:
-                    averager.add(ti, pi, load_slice(ti, pi, again=False))
-            else:
-                for (ti, pi), chunk in _read_ahead(resume, order):
-                    averager.add(ti, pi, load_slice(ti, pi, again=False, read=chunk))
-            averager.finish()
-            source = averager.source
-        table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
-                         band_tail=st.band_tail, storage=st.storage, threads=ASSEMBLY_THREADS)
-    finally:
-        if averager is not None:
-            averager.close()
+    if averager is not None:
+        # Each entry is averaged with its partner's: every direction goes in (read once; the
+        # assembly reads the averaged ones), then the averaged ones come out one at a time.
+        # Those traced now are in already; a resumed bake's chunks are read here.
+        order = [(ti, pi) for ti in range(n_ti) for pi in range(n_pi) if not averager.has(ti, pi)]
+        if resume is None:
+            for ti, pi in order:
+                averager.add(ti, pi, load_slice(ti, pi, again=False))
+        else:
+            for (ti, pi), chunk in _read_ahead(resume, order):
+                averager.add(ti, pi, load_slice(ti, pi, again=False, read=chunk))
+        averager.finish()
+        source = averager.source
+    table = assemble(grid, ctx.levels_um, (n_ti, n_pi), source, ctx.width_env, hdr,
+                     band_tail=st.band_tail, storage=st.storage, threads=ASSEMBLY_THREADS)
     table.header["photons"].update({"total": int(stats["photons"]), "hit": int(stats["n_hit"]),
                                     "cut": int(stats["n_cut"])})
     table.header["bake"]["trace_seconds"] = float(stats["seconds"])
@@ -447,10 +483,37 @@ def _read_ahead(resume: ResumeDirectory, order: list[tuple[int, int]]) -> Iterat
             yield key, chunk
 
 
-def _save_group(resume: ResumeDirectory, dirs: list[tuple[int, int]], traced: list[dict[str, Any]]) -> None:
-    """Write a traced group's chunks, in order."""
+def _keep_group(resume: ResumeDirectory | None, averager: ReciprocalAverage | None,
+                count: Callable[[int, int, Mapping[str, Any]], None],
+                dirs: list[tuple[int, int]], traced: list[dict[str, Any]]) -> None:
+    """Write a traced group's chunks, in order, and add them to the averaging (counted then)."""
     for (ti, pi), data in zip(dirs, traced):
-        resume.save(ti, pi, data)
+        if resume is not None:
+            resume.save(ti, pi, data)
+            if averager is not None:
+                # Its pages will not be read again (unless a later bake resumes from it): let
+                # the page cache keep the averaging's scratch files instead.
+                _drop_cached(resume.chunk_path(ti, pi))
+        if averager is not None:
+            averager.add(ti, pi, data)
+            count(ti, pi, data)
+
+
+def _drop_cached(path: Path) -> None:
+    """Ask the kernel to drop ``path``'s pages from its cache (a hint; nothing where the
+    platform has no ``posix_fadvise``). A chunk is written with fsync, so its pages are clean."""
+    if not hasattr(os, "posix_fadvise"):
+        return
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _chunk_bytes(data: Mapping[str, Any]) -> int:

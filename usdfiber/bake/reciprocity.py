@@ -26,14 +26,17 @@ direction's (1 at zero absorption, the furnace) and the averaging shapes p, whic
 stores normalized per direction anyway (a ratio: its bias is O(1/N), far below the noise).
 
 The averaging streams (:class:`ReciprocalAverage`): each direction's H and G go to scratch
-files, laid out level by level, as the direction is read; then one absorption level of every
+files, laid out level by level, as the direction is traced (a bake adds each group while the
+next one traces) or read from its chunk; then one absorption level of every
 direction at a time is read back, averaged (one theta_i node's partners at a time, on as
 many threads as the memory budget holds, ``ReciprocalAverage.threads``) and written over
 itself; the averaged directions are read out one at a time. It holds one level of the table
 in memory (:func:`usdfiber.bake.settings.reciprocity_bytes`: 1.2 GB for a 2 deg table with
 one thread, 1.4 GB with two, against 11.5 GB for all 11 levels) and needs the whole table's
 H and G on disk (:func:`scratch_bytes`); :func:`check_memory` refuses a bake, before
-tracing, where either does not fit.
+tracing, where either does not fit. An averaging holds a lock on its H file while it is open,
+so a bake killed before it removed its scratch files leaves them unlocked, and the next
+averaging in that directory removes them (:func:`remove_stale_scratch`).
 """
 from __future__ import annotations
 
@@ -41,18 +44,24 @@ import math
 import os
 import shutil
 import tempfile
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO, Any, Mapping
 
 import numpy as np
 
+try:
+    import fcntl
+except ImportError:   # no flock (Windows)
+    fcntl = None  # type: ignore[assignment]
+
 from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import RECIPROCITY_THREADS, BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
 __all__ = ["ReciprocalAverage", "check_grid", "check_memory", "chunk_bytes", "incoming_measure", "node_partners", "node_weights", "partner_bins",
-           "reciprocal_average", "scratch_bytes"]
+           "reciprocal_average", "remove_stale_scratch", "scratch_bytes"]
 
 
 def check_grid(grid: Grid) -> None:
@@ -67,6 +76,51 @@ def check_grid(grid: Grid) -> None:
 def scratch_bytes(grid: Grid, n_levels: int) -> int:
     """Disk bytes of the averaging's scratch files: H and G of every direction, float32."""
     return 2 * 4 * grid.n_theta_i * grid.n_phi_i * grid.n_theta_o * grid.n_phi_o * int(n_levels)
+
+
+#: The prefix of an averaging's scratch directory inside its ``scratch`` directory.
+SCRATCH_PREFIX = ".usdfiber-reciprocity-"
+#: A scratch directory without its H file is left alone for this long (seconds): its owner may
+#: be between making it and naming the locked file (it holds no data before).
+_UNLOCKED_GRACE_S = 3600.0
+
+
+def _lock(f: IO[bytes]) -> bool:
+    """Take the exclusive advisory lock of open file ``f`` without waiting: True when taken (or
+    where the platform has no ``flock``: then nothing is ever found stale), False when another
+    open file holds it. The lock lives as long as ``f`` is open, and dies with its process."""
+    if fcntl is None:
+        return True
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+def remove_stale_scratch(scratch: str | os.PathLike[str]) -> list[Path]:
+    """Remove the averaging scratch directories in ``scratch`` that no live averaging holds: a
+    bake killed before :meth:`ReciprocalAverage.close` (SIGKILL, power loss) leaves its H and
+    G files (11.5 GB for a 2 deg table), and every averaging holds a lock on its H file while
+    it is open. Returns the directories removed; those held, or unreadable, are left."""
+    removed: list[Path] = []
+    base = Path(scratch)
+    if fcntl is None or not base.is_dir():   # without flock nothing is judged stale
+        return removed
+    for d in base.glob(SCRATCH_PREFIX + "*"):
+        try:
+            h = d / "H.f32"
+            if h.exists():
+                with open(h, "rb") as f:
+                    if not _lock(f):
+                        continue   # a live averaging
+            elif time.time() - d.stat().st_mtime < _UNLOCKED_GRACE_S:
+                continue           # being made, or too recent to judge
+            shutil.rmtree(d)
+            removed.append(d)
+        except OSError:
+            continue
+    return removed
 
 
 def _existing(path: Path) -> Path:
@@ -218,7 +272,9 @@ class ReciprocalAverage:
     def __init__(self, grid: Grid, n_levels: int, photons_per_batch: int,
                  scratch: str | os.PathLike[str] | None = None, budget: MemoryBudget | None = None) -> None:
         budget = budget if budget is not None else MemoryBudget.resolve()
-        check_memory(grid, n_levels, scratch if scratch is not None else tempfile.gettempdir(), budget)
+        where = scratch if scratch is not None else tempfile.gettempdir()
+        remove_stale_scratch(where)   # before the disk is checked: they hold it
+        check_memory(grid, n_levels, where, budget)
         self.grid = grid
         #: Threads of :meth:`finish`: as many as the budget holds (one always does, above).
         self.threads = max(n for n in range(1, RECIPROCITY_THREADS + 1)
@@ -228,11 +284,16 @@ class ReciprocalAverage:
         n_dirs = grid.n_theta_i * grid.n_phi_i
         self._n_bins = grid.n_theta_o * grid.n_phi_o
         self._files: dict[str, IO[bytes]] = {}
-        self._tmp = tempfile.TemporaryDirectory(prefix=".usdfiber-reciprocity-", dir=scratch)
+        self._tmp = tempfile.TemporaryDirectory(prefix=SCRATCH_PREFIX, dir=scratch)
         try:
             for name in ("H", "G"):
-                f = open(Path(self._tmp.name) / f"{name}.f32", "w+b")
+                # H is locked before it gets its name, so a directory whose H file is not locked
+                # is one whose averaging has ended (remove_stale_scratch).
+                path = Path(self._tmp.name) / f"{name}.f32"
+                f = open(path.with_suffix(".new"), "w+b")
                 self._files[name] = f
+                _lock(f)
+                os.replace(path.with_suffix(".new"), path)
                 f.truncate(4 * self.n_levels * n_dirs * self._n_bins)   # sparse: zeros where nothing is written
         except BaseException:
             self.close()
@@ -265,6 +326,10 @@ class ReciprocalAverage:
         if not (0 <= ti < g.n_theta_i and 0 <= pi < g.n_phi_i):
             raise IndexError(f"no direction ({ti}, {pi}) in a grid of {g.n_theta_i} x {g.n_phi_i} nodes")
         return ti * g.n_phi_i + pi
+
+    def has(self, ti: int, pi: int) -> bool:
+        """Whether direction (ti, pi) has been added."""
+        return self._meta[self._direction(ti, pi)] is not None
 
     def add(self, ti: int, pi: int, data: Mapping[str, Any]) -> None:
         """Take direction (ti, pi): the mapping of
