@@ -4,6 +4,8 @@ its scratch files removed however it ends."""
 from __future__ import annotations
 
 import math
+import os
+import re
 import tempfile
 import tracemalloc
 from typing import Any, Mapping
@@ -453,3 +455,18 @@ def test_a_killed_averagings_scratch_files_are_removed_a_live_ones_kept(tmp_path
                       levels=(0.0, 0.5))
     bake_table(prof, ETA, 15.0, None, st, resume_dir=resume)
     assert sorted(p.name for p in resume.iterdir() if not p.name.startswith("d")) == ["bake.json"]
+
+
+def test_a_damaged_scratch_file_is_named(tmp_path):
+    """A scratch file cut short (its disk failing under it) stops the averaging with an error
+    naming that file, never a silent average of zeros."""
+    g, K = Grid(30.0), 2
+    slices = _random_table(g, K, seed=5)
+    with ReciprocalAverage(g, K, PPB, tmp_path) as avg:
+        for key, d in slices.items():
+            avg.add(*key, d)
+        h = avg.directory / "H.f32"
+        os.truncate(h, h.stat().st_size // 2)
+        with pytest.raises(OSError, match=rf"{re.escape(str(h))}: scratch file shorter than written"):
+            avg.finish()
+    assert list(tmp_path.iterdir()) == []

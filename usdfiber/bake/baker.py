@@ -34,8 +34,9 @@ photon's first numbers from a scrambled Sobol point (:mod:`usdfiber.bake.samplin
 "reciprocity" averages every entry of a box-filtered table with its reciprocal partner
 (:mod:`usdfiber.bake.reciprocity`) when the table is assembled (its chunks hold the plain
 histograms; each direction goes to the averaging's scratch files as its group is written, so
-only a resumed bake's chunks are read back); "split" splits every hit of the outer surface into ``split_walks`` microsurface
-walks (:func:`usdfiber.bake.tracer.trace`; a photon then leaves several weighted exits);
+only a resumed bake's chunks are read back); "split" splits every hit of the outer surface
+into ``split_walks`` microsurface walks (:func:`usdfiber.bake.tracer.trace`; a photon then
+leaves several weighted exits);
 "expected" histograms, in the tracer's kernel, the expected exit of every outer-surface event
 where leaving is for good over up to ``expected_normals`` normals (shared among the events by
 ``expected_allocation``, drawn as ``expected_sampler`` says), at every absorption level

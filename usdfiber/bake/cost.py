@@ -52,7 +52,9 @@ __all__ = ["LONG_BAKE_SECONDS", "PROBE_DIRECTIONS", "RECIPROCITY_BYTES_PER_SECON
            "total"]
 
 #: Bytes of a table's H and G the reciprocity averaging gets through per second (a full 2 deg
-#: table's 11.5 GB in 100-110 s on 2 cores, bench/REPORT.md section 7): not probed.
+#: table's 11.5 GB in 100-110 s on 2 cores with every chunk read back, bench/REPORT.md section 7;
+#: about 70 s since a bake adds each group as it is traced, so a bound for resumed bakes and
+#: about 45 s over for unstopped ones): not probed.
 RECIPROCITY_BYTES_PER_SECOND = 100e6
 #: Incoming directions a probe traces (spread over the table's grid).
 PROBE_DIRECTIONS = 4

@@ -60,7 +60,7 @@ from usdfiber.bake.grid import Grid
 from usdfiber.bake.settings import RECIPROCITY_THREADS, BakeError, reciprocity_bytes
 from usdfiber.memory_budget import BUDGET_ENV, MemoryBudget, format_bytes
 
-__all__ = ["ReciprocalAverage", "check_grid", "check_memory", "chunk_bytes", "incoming_measure", "node_partners", "node_weights", "partner_bins",
+__all__ = ["SCRATCH_PREFIX", "ReciprocalAverage", "check_grid", "check_memory", "chunk_bytes", "incoming_measure", "node_partners", "node_weights", "partner_bins",
            "reciprocal_average", "remove_stale_scratch", "scratch_bytes"]
 
 
@@ -240,15 +240,15 @@ def _write(f: IO[bytes], a: np.ndarray, offset: int) -> None:
         done += os.pwrite(fd, view[done:], offset + done)
 
 
-def _read_into(f: IO[bytes], a: np.ndarray, offset: int) -> None:
+def _read_into(f: IO[bytes], a: np.ndarray, offset: int, name: str = "") -> None:
     """Fill the contiguous ``a`` from ``offset`` (positioned, as :func:`_write`); a short read
-    is a damaged scratch file."""
+    is a damaged scratch file (``name``: the file's, for the error; default ``f.name``)."""
     view = memoryview(a).cast("B")
     fd, done = f.fileno(), 0
     while done < len(view):
         n = os.preadv(fd, [view[done:]], offset + done)
         if n <= 0:
-            raise OSError(f"{f.name}: scratch file shorter than written")
+            raise OSError(f"{name or f.name}: scratch file shorter than written")
         done += n
 
 
@@ -379,8 +379,8 @@ class ReciprocalAverage:
         with ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="usdfiber-reciprocity") as pool:
             for k in range(self.n_levels):
                 # The whole level is read before any node is written back: partners read originals.
-                _read_into(self._files["H"], H, self._offset(k, 0))
-                _read_into(self._files["G"], G, self._offset(k, 0))
+                _read_into(self._files["H"], H, self._offset(k, 0), str(self.directory / "H.f32"))
+                _read_into(self._files["G"], G, self._offset(k, 0), str(self.directory / "G.f32"))
                 for done in [pool.submit(self._average_node, k, ti, H, G, c, meas) for ti in range(n_ti)]:
                     done.result()
         self._finished = True
@@ -433,7 +433,7 @@ class ReciprocalAverage:
         for name in ("H", "G"):
             arr = np.empty((self.n_levels, r1 - r0, self.grid.n_phi_o), dtype=np.float32)
             for k in range(self.n_levels):
-                _read_into(self._files[name], arr[k], self._offset(k, d, r0))
+                _read_into(self._files[name], arr[k], self._offset(k, d, r0), str(self.directory / f"{name}.f32"))
             out[name] = arr
         out["rel_error"] = float(out["rel_error"]) * math.sqrt(float(self._ratio[d]))
         return out
