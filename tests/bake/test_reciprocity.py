@@ -413,7 +413,6 @@ time.sleep(120)
 def test_a_killed_averagings_scratch_files_are_removed_a_live_ones_kept(tmp_path):
     """A process killed before it could remove its scratch files leaves them; the next
     averaging (or bake) in that directory removes them, and never those of a live one."""
-    import os
     import signal
     import subprocess
     import sys

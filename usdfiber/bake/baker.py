@@ -305,12 +305,14 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
     stats = {"photons": 0, "n_hit": 0, "n_cut": 0, "leaks": 0, "seconds": 0.0}
     counted: set[tuple[int, int]] = set()
 
-    def count(ti: int, pi: int, d: Mapping[str, Any]) -> None:
-        """Add direction (ti, pi)'s photons and seconds to ``stats``, once."""
-        if (ti, pi) not in counted:
-            counted.add((ti, pi))
-            for k in ("photons", "n_hit", "n_cut", "leaks", "seconds"):
-                stats[k] += d[k]
+    def count(ti: int, pi: int, d: Mapping[str, Any]) -> bool:
+        """Add direction (ti, pi)'s photons and seconds to ``stats``, once: True the first time."""
+        if (ti, pi) in counted:
+            return False
+        counted.add((ti, pi))
+        for k in ("photons", "n_hit", "n_cut", "leaks", "seconds"):
+            stats[k] += d[k]
+        return True
 
     # With reciprocity each direction's histograms go to the averaging's scratch files as soon
     # as they are traced (read once, while in memory), not read back from their chunks after
@@ -328,7 +330,7 @@ def _bake_directions(ctx: BakeContext, profile: Any, resume: ResumeDirectory | N
 
 def _trace_all(ctx: BakeContext, todo: list[tuple[int, int]], resume: ResumeDirectory | None,
                averager: ReciprocalAverage | None, in_memory: dict[tuple[int, int], dict[str, Any]],
-               count: Callable[[int, int, Mapping[str, Any]], None], progress: ProgressFn | None,
+               count: Callable[[int, int, Mapping[str, Any]], bool], progress: ProgressFn | None,
                done: int, total: int) -> None:
     """Trace the directions ``todo``; each goes to its chunk (``resume``), to the averaging
     (``averager``), or else stays in ``in_memory``."""
@@ -365,7 +367,7 @@ def _trace_all(ctx: BakeContext, todo: list[tuple[int, int]], resume: ResumeDire
 
 def _assemble_table(ctx: BakeContext, profile: Any, resume: ResumeDirectory | None,
                     averager: ReciprocalAverage | None, in_memory: dict[tuple[int, int], dict[str, Any]],
-                    stats: dict[str, Any], count: Callable[[int, int, Mapping[str, Any]], None],
+                    stats: dict[str, Any], count: Callable[[int, int, Mapping[str, Any]], bool],
                     header: Mapping[str, Any] | None, t_start: float) -> BcsdfTable:
     """The table of the traced directions (averaged by ``averager``, when given), and its header."""
     st, grid = ctx.settings, ctx.grid
@@ -374,7 +376,6 @@ def _assemble_table(ctx: BakeContext, profile: Any, resume: ResumeDirectory | No
     # are kept for the second read while they fit in KEEP_CHUNK_BYTES, and released by it.
     kept: dict[tuple[int, int], dict[str, Any]] = {}
     kept_bytes = 0
-    first_read: set[tuple[int, int]] = set()
 
     def load_slice(ti: int, pi: int, again: bool = True, read: Any = _UNREAD) -> Mapping[str, Any]:
         """Direction (ti, pi), counted in ``stats`` once; ``again``: it will be read again;
@@ -390,10 +391,10 @@ def _assemble_table(ctx: BakeContext, profile: Any, resume: ResumeDirectory | No
             if d is None:  # unusable: trace it again
                 d = _trace_direction(ctx, ti, pi)
                 resume.save(ti, pi, d)
-            if again and (ti, pi) not in first_read and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
+            # Kept on its first read only (count: True then).
+            if count(ti, pi, d) and again and kept_bytes + _chunk_bytes(d) <= KEEP_CHUNK_BYTES:
                 kept[(ti, pi)] = d
                 kept_bytes += _chunk_bytes(d)
-        first_read.add((ti, pi))
         count(ti, pi, d)
         return d
 
@@ -485,7 +486,7 @@ def _read_ahead(resume: ResumeDirectory, order: list[tuple[int, int]]) -> Iterat
 
 
 def _keep_group(resume: ResumeDirectory | None, averager: ReciprocalAverage | None,
-                count: Callable[[int, int, Mapping[str, Any]], None],
+                count: Callable[[int, int, Mapping[str, Any]], bool],
                 dirs: list[tuple[int, int]], traced: list[dict[str, Any]]) -> None:
     """Write a traced group's chunks, in order, and add them to the averaging (counted then)."""
     for (ti, pi), data in zip(dirs, traced):

@@ -327,6 +327,11 @@ class ReciprocalAverage:
             raise IndexError(f"no direction ({ti}, {pi}) in a grid of {g.n_theta_i} x {g.n_phi_i} nodes")
         return ti * g.n_phi_i + pi
 
+    def _read(self, name: str, a: np.ndarray, offset: int) -> None:
+        """:func:`_read_into` from scratch file ``name`` ("H" or "G"), named in its errors by
+        the name it has (its file object keeps the one it was opened under)."""
+        _read_into(self._files[name], a, offset, str(self.directory / f"{name}.f32"))
+
     def has(self, ti: int, pi: int) -> bool:
         """Whether direction (ti, pi) has been added."""
         return self._meta[self._direction(ti, pi)] is not None
@@ -379,8 +384,8 @@ class ReciprocalAverage:
         with ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="usdfiber-reciprocity") as pool:
             for k in range(self.n_levels):
                 # The whole level is read before any node is written back: partners read originals.
-                _read_into(self._files["H"], H, self._offset(k, 0), str(self.directory / "H.f32"))
-                _read_into(self._files["G"], G, self._offset(k, 0), str(self.directory / "G.f32"))
+                self._read("H", H, self._offset(k, 0))
+                self._read("G", G, self._offset(k, 0))
                 for done in [pool.submit(self._average_node, k, ti, H, G, c, meas) for ti in range(n_ti)]:
                     done.result()
         self._finished = True
@@ -433,7 +438,7 @@ class ReciprocalAverage:
         for name in ("H", "G"):
             arr = np.empty((self.n_levels, r1 - r0, self.grid.n_phi_o), dtype=np.float32)
             for k in range(self.n_levels):
-                _read_into(self._files[name], arr[k], self._offset(k, d, r0), str(self.directory / f"{name}.f32"))
+                self._read(name, arr[k], self._offset(k, d, r0))
             out[name] = arr
         out["rel_error"] = float(out["rel_error"]) * math.sqrt(float(self._ratio[d]))
         return out
