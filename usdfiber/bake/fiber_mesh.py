@@ -50,6 +50,9 @@ class FiberMesh:
     #: (extruded fibers; all outer faces of a convex loop). The whole fiber lies on the inner
     #: side of that edge's line, so light leaving such a face outwards cannot meet it again.
     outer_hull: np.ndarray | None = None
+    #: (F,) int: the edge of the outer loop (vertex i to i + 1) a face is extruded from, -1 for
+    #: other faces and for cuticle segments.
+    outer_edge: np.ndarray | None = None
 
     def to_mitsuba(self, mi: Any) -> Any:
         """Build the ``mi.Mesh`` (positions, faces, vertex normals) of this segment."""
@@ -155,12 +158,15 @@ def build_fiber_mesh(
     faces: list[np.ndarray] = []
     outer_flags: list[np.ndarray] = []    # per block of faces: on the outer surface?
     hull_flags: list[np.ndarray] = []     # per block of faces: on an edge of the outline's hull?
+    edge_ids: list[np.ndarray] = []       # per block of faces: outer-loop edge, or -1
     count = 0
 
-    def add_faces(tri: np.ndarray, outer: bool, hull: np.ndarray | None = None) -> None:
+    def add_faces(tri: np.ndarray, outer: bool, hull: np.ndarray | None = None,
+                  edge: np.ndarray | None = None) -> None:
         faces.append(tri)
         outer_flags.append(np.full(len(tri), outer))
         hull_flags.append(np.zeros(len(tri), bool) if hull is None else np.asarray(hull, bool))
+        edge_ids.append(np.full(len(tri), -1, np.int64) if edge is None else np.asarray(edge, np.int64))
 
     def add_ring(xy: np.ndarray, z: float, nrm3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Add one ring of vertices at height z; returns (start, end) vertex index per edge."""
@@ -193,7 +199,8 @@ def build_fiber_mesh(
             a = add_ring(lp, -0.5 * seg, n3)
             b = add_ring(lp, 0.5 * seg, n3)
             # _quads gives two triangles per edge, in two blocks of one per edge.
-            add_faces(_quads(a, b), j == 0, np.tile(hull_edges(lp), 2) if j == 0 else None)
+            add_faces(_quads(a, b), j == 0, np.tile(hull_edges(lp), 2) if j == 0 else None,
+                      np.tile(np.arange(len(lp)), 2) if j == 0 else None)
         z_invariant, z_period, bound = True, seg, radius
     else:
         tilt_deg, height, spacing = (float(c) for c in cuticle)
@@ -243,11 +250,13 @@ def build_fiber_mesh(
     F = np.concatenate(faces).astype(np.uint32)
     outer_faces = np.concatenate(outer_flags)
     outer_hull = np.concatenate(hull_flags)
+    outer_edge = np.concatenate(edge_ids)
     p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     fn = np.cross(p1 - p0, p2 - p0)
     area2 = np.linalg.norm(fn, axis=1)
     keep = area2 > 1e-12 * max(radius, 1.0) ** 2   # drop degenerate triangles
     F, fn, area2, outer_faces, outer_hull = F[keep], fn[keep], area2[keep], outer_faces[keep], outer_hull[keep]
+    outer_edge = outer_edge[keep]
     fn /= area2[:, None]
     # The winding is chosen so that geometric normals leave the material; check it against the
     # smooth normals, which is what makes the tracer's inside/outside test trustworthy.
@@ -268,4 +277,5 @@ def build_fiber_mesh(
         outer_faces=outer_faces,
         outer_convex=cuticle is None and is_convex_loop(loops[0]),
         outer_hull=outer_hull,
+        outer_edge=outer_edge,
     )

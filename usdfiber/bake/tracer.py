@@ -56,7 +56,9 @@ default: a logarithm and a sine per normal, where Beckmann's visible-normal samp
 its distribution numerically, 13x the time; bench/REPORT.md s. 7), or from the visible normals
 themselves (``"visible"``, weight 1). On an edge of the outline's convex hull
 (:attr:`FiberMesh.outer_hull`: the whole fiber lies behind that edge's line) every exit escapes;
-on the concave sides an escape ray per normal decides, as the real photon's next ray does. The
+on the concave sides an escape ray per normal decides, as the real photon's next ray does (not
+cast where the exit's direction lies in its edge's wedge of directions that leave the pocket for
+good, :mod:`usdfiber.bake.pockets`: that ray would miss). The
 real walk goes on; if it then takes exactly that outcome it ends unrecorded (on the concave
 sides: when its next ray escapes), so deposit and kill cover the same outcomes and the estimate
 is unbiased. Events are queued in the loop and their normals evaluated between phases, on just
@@ -81,6 +83,7 @@ import numpy as np
 from usdfiber.backend import mitsuba
 from usdfiber.bake import sampling
 from usdfiber.bake.fiber_mesh import FiberMesh, build_fiber_mesh, profile_bounds
+from usdfiber.bake.pockets import escape_wedges
 from usdfiber.bake.settings import (EXPECTED_ALLOCATIONS, EXPECTED_HIST_BYTES, EXPECTED_QUEUE_BYTES, EXPECTED_SAMPLERS,
                                     MAX_EXPECTED_NORMALS, MAX_SPLIT_WALKS)
 
@@ -184,12 +187,49 @@ class FiberScene:
     cuticle: tuple[float, float, float] | None
     outer: Any = None   # mi.UInt32, (F,): 1 where the face is on the outer surface
     hull: Any = None    # mi.UInt32, (F,): 1 where it is on an edge of the outline's convex hull
+    #: mi.Float, flat (F*4): each face's wedge of exit directions that leave its pocket for good
+    #: (:func:`usdfiber.bake.pockets.escape_wedges`; zeros: none), for extruded fibers whose
+    #: outline is not convex; None otherwise.
+    wedge: Any = None
+
+
+#: Exits whose direction lies in their edge's wedge (:mod:`usdfiber.bake.pockets`) skip the
+#: escape ray, which would miss (a switch for the tests that compare both ways).
+_POCKET_WEDGES = True
+
+
+def ray_offset(mesh: FiberMesh) -> float:
+    """How far the tracer moves a boundary result off its face (along the face normal):
+    about 100 float32 ulps of the largest coordinate."""
+    scale = max(mesh.bound_radius, mesh.z_period if not mesh.z_invariant else 0.0, 1.0)
+    return float(scale * 2.0**-16)
+
+
+def _pocket_wedges(profile: Any, mesh: FiberMesh) -> np.ndarray | None:
+    """(F, 4) wedges of the faces of an extruded, non-convex outline (zeros off the outer
+    loop), from the float32 vertices the ray casts see; None where no exit needs a ray."""
+    if not mesh.z_invariant or mesh.outer_convex or mesh.outer_edge is None:
+        return None
+    loop = np.asarray(profile.loops[0], dtype=np.float32).astype(np.float64)
+    eps = ray_offset(mesh)
+    # The mesh's own hull flags (an edge without faces counts as off the hull: a longer chain
+    # only narrows the wedges).
+    on = mesh.outer_edge >= 0
+    hull = np.zeros(len(loop), bool)
+    hull[mesh.outer_edge[on]] = mesh.outer_hull[on]
+    # Exit points lie eps off the edge's line up to the float32 rounding of the hit point (a few
+    # ulps of coordinates of order 1).
+    wedges = escape_wedges(loop, hull, offset=(0.5 * eps, 2.0 * eps))
+    out = np.zeros((len(mesh.faces), 4))
+    out[on] = wedges[mesh.outer_edge[on]]
+    return out
 
 
 def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **mesh_kw: Any) -> FiberScene:
     """Mesh ``profile`` (see :func:`build_fiber_mesh`) and load it into a Mitsuba scene."""
     mi = mitsuba()
     mesh = build_fiber_mesh(profile, cuticle, **mesh_kw)
+    wedges = _pocket_wedges(profile, mesh)
     scene = mi.load_dict({"type": "scene", "fiber": mesh.to_mitsuba(mi)})
     return FiberScene(
         profile=profile,
@@ -202,6 +242,7 @@ def prepare(profile: Any, cuticle: tuple[float, float, float] | None = None, **m
         outer=mi.UInt32(np.asarray(mesh.outer_faces, dtype=np.uint32)),
         hull=mi.UInt32(np.asarray(mesh.outer_hull if mesh.outer_hull is not None
                                   else np.zeros(len(mesh.faces), bool), dtype=np.uint32)),
+        wedge=None if wedges is None else mi.Float(wedges.astype(np.float32).ravel()),
     )
 
 
@@ -240,6 +281,8 @@ _HIST_BYTES = EXPECTED_HIST_BYTES
 _EV_LANES = 1 << 18
 #: Expected-value estimator: bytes of a queued event (21 fields of 4 bytes).
 _EV_EVENT_BYTES = 84
+#: The expected value's queued "hull" field of an event on a hull face (else its face index).
+_EV_HULL = 0xFFFFFFFF
 #: Expected-value estimator: events queued before their normals are evaluated (352 MB), or one
 #: phase's room if larger (at most _EV_LANES x 8, fewer events).
 _EV_QUEUE = EXPECTED_QUEUE_BYTES // _EV_EVENT_BYTES
@@ -519,8 +562,7 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     mesh = fs.mesh
     z_inv = mesh.z_invariant
     rough = alpha > 0.0
-    scale = max(mesh.bound_radius, mesh.z_period if not z_inv else 0.0, 1.0)
-    eps = float(scale * 2.0**-16)              # ~ 100 float32 ulps of the largest coordinate
+    eps = ray_offset(mesh)
     rb = float(mesh.bound_radius)
     zp = float(mesh.z_period)
 
@@ -544,6 +586,9 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     outer, outer_convex = fs.outer, bool(mesh.outer_convex)
     inv_k = dr.opaque(F, 1.0 / max(split, 1))
     ev = int(expected)
+    # The expected value's exits off the hull skip the escape ray inside their face's wedge: the
+    # walk keeps the face of its boundary event (state face).
+    wedges = fs.wedge if (ev and rough and not outer_convex and _POCKET_WEDGES and fs.wedge is not None) else None
     if ev and (split or not z_inv or histogram is None):
         raise ValueError("the expected-value estimator needs an extruded fiber, a histogram and no splitting")
 
@@ -610,6 +655,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     hull_esc = z_inv
     if z_inv and rough:
         st["hull"] = dr.full(B, False, n)
+    if wedges is not None:
+        st["face"] = dr.zeros(U, n)
     if rough:
         # A walk's leaving test comes at the end of the iteration of its microfacet event (it used to
         # open the next iteration, with the number that iteration drew first): this number stands
@@ -717,6 +764,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
     EV_FIELDS = ("hb", "into", "above", "hull", "L", "w", "h", "sg", "r1", "r2", "nx", "ny", "nz", "wx", "wy", "wz",
                  "gx", "gy", "gz", "px", "py")
     EV_UINT = ("hb", "into", "above", "hull")
+    #: The "hull" field: _EV_HULL for an event on a hull face, else its face (with wedges) or 0.
+    ev_hull = dr.opaque(U, _EV_HULL)
     assert 4 * len(EV_FIELDS) == _EV_EVENT_BYTES
     evq: dict[str, Any] = {}
     evq_cap = [0]
@@ -826,9 +875,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         r1, r2 = rng.next_float32(), rng.next_float32()
         slot = dr.scatter_inc(evq["count"], U(0), elig)
         nm, ng, p = s["nm"], s["ngs"], s["p"]
+        face = s["face"] if wedges is not None else U(0)
         vals = (dr.gather(U, hist_beam, s["idx"]), U(dr.select(into, 1, 0)), U(dr.select(above_out, 1, 0)),
-                U(dr.select(s["hull"], 1, 0)), s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z, wi.x, wi.y, wi.z,
-                ng.x, ng.y, ng.z, p.x, p.y)
+                dr.select(s["hull"], ev_hull, face), s["L"], s["w"], h_out, sg, r1, r2, nm.x, nm.y, nm.z,
+                wi.x, wi.y, wi.z, ng.x, ng.y, ng.z, p.x, p.y)
         for k, v in zip(EV_FIELDS, vals):
             dr.scatter(evq[k], v, slot, elig)
 
@@ -880,7 +930,10 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
         dr.scatter_reduce(dr.ReduceOp.Add, ev_events, U(1), e["hb"])
         dr.scatter_reduce(dr.ReduceOp.Add, ev_normals, U(kn), e["hb"])
         lat_a, inv_ev = _lattice_generator(kn), dr.opaque(F, 1.0 / kn)
-        into, above_out, hull = e["into"] != 0, e["above"] != 0, e["hull"] != 0
+        into, above_out, hull = e["into"] != 0, e["above"] != 0, e["hull"] == ev_hull
+        if wedges is not None:
+            # The event's face's wedge (zeros on the hull: its exits need no ray anyway).
+            wdg = [dr.gather(F, wedges, e["hull"] * 4 + k, ~hull) for k in range(4)]
         frame = mi.Frame3f(V3(e["nx"], e["ny"], e["nz"]))
         wi, ngs, sg = V3(e["wx"], e["wy"], e["wz"]), V3(e["gx"], e["gy"], e["gz"]), e["sg"]
         p_ev = V3(e["px"], e["py"], 0.0)
@@ -923,7 +976,13 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
                 # Off the hull the exit may meet the fiber again: then it is not this outcome.
                 # (Planes spread over the slab, one per normal, as the real rays' random ones.)
                 zr = zs_o * ((j + 0.5) / kn - 0.5)
-                live = hull & live | escapes_from(p_out, d_out, ~hull & live, zr)
+                cast = ~hull & live
+                if wedges is not None:
+                    # Inside the wedge the ray would miss (pockets.py): it leaves without one.
+                    clear = ((wdg[0] * d_out.y - wdg[1] * d_out.x > 0.0)
+                             & (d_out.x * wdg[3] - d_out.y * wdg[2] > 0.0))
+                    cast = cast & ~clear
+                live = (hull | ~cast) & live | escapes_from(p_out, d_out, cast, zr)
             deposit_expected(e["hb"], live, d_out, wt, att, exact_rows=False)
 
     def expected_smooth(s: dict, elig: Any, d: Any, nm: Any, inside: Any, rng: Any) -> tuple[Any, Any, Any]:
@@ -1084,6 +1143,8 @@ def _trace_batch(fs: FiberScene, launch: _Launch, *, eta: float, alpha: float, m
             on_hull = dr.gather(U, fs.hull, pi.prim_index, hit) != 0
             if rough:
                 s["hull"] = dr.select(hit, on_hull, s["hull"])
+            if wedges is not None:
+                s["face"] = dr.select(hit, pi.prim_index, s["face"])
         if ev:
             # The expected value serves hull faces and, on a rough walk, any other outer face
             # (what its exit ray shows to leave for good).
