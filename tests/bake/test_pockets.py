@@ -163,6 +163,9 @@ def test_expected_histograms_are_the_same_without_the_wedges(monkeypatch, name, 
 
 
 def test_convex_and_cuticle_fibers_have_no_wedges():
-    """A convex outline needs no escape ray at all, and scales are not extruded."""
+    """A convex outline needs no escape ray at all, and scales are not extruded; a concave
+    extruded outline has wedges."""
     assert scene("circle").wedge is None
     assert tracer.prepare(profiles.circle(64)).wedge is None
+    assert tracer.prepare(star_profile(), cuticle=(3.0, 0.05, 1.0)).wedge is None
+    assert tracer.prepare(star_profile()).wedge is not None
